@@ -1,0 +1,146 @@
+"""``aswarm bench``: environment throughput, written to BENCHMARKS.md.
+
+Env-steps/s of a scenario inside ``lax.scan`` at several world counts,
+compile time apart, and the same for crazyflow (a peer simulator) measured in
+the same run when it is installed, as a ratio.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from aswarm import envs
+
+
+@dataclasses.dataclass
+class Row:
+    name: str
+    worlds: int
+    steps: int
+    compile_s: float
+    run_s: float
+    agents: int
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.worlds * self.steps / self.run_s
+
+    @property
+    def drone_steps_per_s(self) -> float:
+        return self.env_steps_per_s * self.agents
+
+
+def rollout_fn(env, worlds: int, steps: int):
+    """A jitted random-action rollout of ``steps`` env steps in ``worlds`` auto-resetting worlds."""
+    wenv = envs.wrap_for_training(env, worlds)
+    n = env.num_agents
+
+    def run(key):
+        state = wenv.reset(key)
+
+        def body(carry, _):
+            s, k = carry
+            k, ka = jax.random.split(k)
+            a = jax.random.uniform(ka, (worlds, n, 3), minval=-1.0, maxval=1.0) * env.config.max_speed
+            s = wenv.step(s, a)
+            return (s, k), s.done.sum()
+
+        (state, _), dones = jax.lax.scan(body, (state, key), None, length=steps)
+        return state.obs, dones.sum()
+
+    return jax.jit(run)
+
+
+def time_env(scenario: str, worlds: int, steps: int, **overrides) -> Row:
+    env = envs.make(scenario, **overrides)
+    fn = rollout_fn(env, worlds, steps)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn.lower(jax.random.PRNGKey(0)).compile())
+    compiled = fn.lower(jax.random.PRNGKey(0)).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(jax.random.PRNGKey(1)))  # warm-up
+    t0 = time.perf_counter()
+    jax.block_until_ready(compiled(jax.random.PRNGKey(2)))
+    return Row(f"aswarm {scenario}", worlds, steps, compile_s, time.perf_counter() - t0, env.num_agents)
+
+
+def time_stages(scenario: str, worlds: int, steps: int) -> dict[str, float]:
+    """Seconds per env step of the batch for physics alone, physics + controller, and the whole step."""
+    from mujoco import mjx
+
+    from aswarm.envs.controller import velocity_controller
+    from aswarm.envs.dynamics import drone_state, physics_step
+
+    env = envs.make(scenario)
+    cfg = env.config
+    n = env.num_agents
+    wenv = envs.wrap_for_training(env, worlds)
+    state0 = jax.jit(wenv.reset)(jax.random.PRNGKey(0))
+    rpm = jnp.full((worlds, n, 4), cfg.cf.hover_rpm)
+
+    def physics_only(data):
+        def body(d, _):
+            return jax.vmap(lambda x, r: physics_step(env.mjx_model, x, r, cfg.cf))(d, rpm), None
+        return jax.lax.scan(body, data, None, length=steps * cfg.substeps)[0]
+
+    def with_controller(data):
+        def body(d, _):
+            r = jax.vmap(lambda x: velocity_controller(drone_state(x, n), jnp.zeros((n, 3)), cfg.gains, cfg.cf))(d)
+            return jax.vmap(lambda x, rr: physics_step(env.mjx_model, x, rr, cfg.cf))(d, r), None
+        return jax.lax.scan(body, data, None, length=steps * cfg.substeps)[0]
+
+    def full(state):
+        def body(s, _):
+            return wenv.step(s, jnp.zeros((worlds, n, 3))), None
+        return jax.lax.scan(body, state, None, length=steps)[0]
+
+    out = {}
+    for name, fn, arg in (("mjx.step only", physics_only, state0.data), ("+ controller", with_controller, state0.data),
+                          ("full env step", full, state0)):
+        f = jax.jit(fn)
+        jax.block_until_ready(f(arg))
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(arg))
+        out[name] = (time.perf_counter() - t0) / steps
+    del mjx
+    return out
+
+
+CRAZYFLOW_SCRIPT = Path(__file__).with_name("peers") / "crazyflow_bench.py"
+
+
+def time_crazyflow(worlds: int, steps: int, python: str | None = None) -> Row | str:
+    """Run the crazyflow benchmark in a subprocess; returns a Row or why it could not run."""
+    python = python or os.environ.get("ASWARM_CRAZYFLOW_PYTHON", sys.executable)
+    cmd = [python, str(CRAZYFLOW_SCRIPT), "--worlds", str(worlds), "--steps", str(steps)]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        return f"crazyflow benchmark did not run: {e}"
+    if out.returncode != 0:
+        last = (out.stderr.strip().splitlines() or ["no output"])[-1]
+        return f"crazyflow benchmark failed: {last}"
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    return Row("crazyflow (state ctrl)", r["worlds"], r["steps"], r["compile_s"], r["run_s"], r["agents"])
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"

@@ -1,0 +1,130 @@
+"""Typed, frozen environment configuration; scenario presets live in ``scenarios.py``."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from aswarm.envs.controller import ControllerGains
+from aswarm.envs.crazyflie import CrazyflieParams
+
+REWARDS = ("shaped", "paper")
+MAX_AGENTS = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    scenario: str = "race"
+    num_agents: int = 4
+    num_obstacles: int = 8  # static cylinders
+    num_moving: int = 0  # moving cylinders, at most, per episode
+    min_moving: int = 0  # moving cylinders, at least, per episode
+    num_gates: int = 4  # 0: each drone flies to a goal point instead
+    # Geometry (metres). Gate tracks are ellipses with these semi-axes.
+    track_radii: tuple[float, float] = (6.0, 4.0)
+    track_height: float = 1.0
+    arena_low: tuple[float, float, float] = (-8.0, -6.0, 0.0)
+    arena_high: tuple[float, float, float] = (8.0, 6.0, 3.0)
+    gate_half_opening: float = 0.3
+    gate_bar: float = 0.05
+    obstacle_radius: float = 0.15
+    obstacle_height: float = 2.5
+    obstacle_spacing: float = 1.5  # between obstacle slots along the track / grid
+    obstacle_lateral: float = 0.6  # random offset of a static obstacle from the racing line
+    gate_clearance: float = 1.2  # no obstacle slot closer than this (along the track) to a gate or the start
+    moving_amplitude: float = 0.8
+    moving_period: float = 4.0  # s
+    goal_radius: float = 0.2
+    start_spacing: float = 0.5
+    layout_jitter: float = 1.0  # 0 gives the nominal layout every episode
+    # Rates (Hz). Physics >= 240 Hz; the controller and the policy divide it.
+    sim_freq: int = 250
+    ctrl_freq: int = 250
+    policy_freq: int = 50
+    episode_seconds: float = 40.0
+    max_speed: float = 2.0  # m/s, per-axis clip of the velocity command
+    # Reward and cost.
+    reward: str = "shaped"
+    progress_weight: float = 10.0  # per metre of progress towards the current target
+    gate_bonus: float = 10.0
+    finish_bonus: float = 20.0
+    collision_penalty: float = 100.0  # the paper's -100
+    time_penalty: float = 0.5  # per second, while flying
+    paper_epsilon: float = 0.001  # r = 1 / (d + eps)
+    safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
+    cf: CrazyflieParams = CrazyflieParams()
+    gains: ControllerGains = ControllerGains()
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def substeps(self) -> int:
+        return self.sim_freq // self.policy_freq
+
+    @property
+    def ctrl_every(self) -> int:
+        return self.sim_freq // self.ctrl_freq
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.policy_freq
+
+    @property
+    def max_steps(self) -> int:
+        return int(round(self.episode_seconds * self.policy_freq))
+
+    @property
+    def num_cylinders(self) -> int:
+        return self.num_obstacles + self.num_moving
+
+
+def _fail(name: str, value, allowed: str) -> None:
+    raise ValueError(f"invalid {name}={value!r}: {allowed}")
+
+
+def _check_finite(prefix: str, obj) -> None:
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        vals = v if isinstance(v, tuple) else (v,)
+        for x in vals:
+            if isinstance(x, float) and not math.isfinite(x):
+                _fail(prefix + f.name, v, "must be a finite number")
+
+
+def validate(c: EnvConfig) -> None:
+    """Raise ``ValueError`` naming the first bad field and what is allowed."""
+    from aswarm.envs.scenarios import SCENARIOS  # presets import this module
+
+    if c.scenario not in SCENARIOS:
+        _fail("scenario", c.scenario, f"allowed: {', '.join(SCENARIOS)}")
+    _check_finite("", c)
+    _check_finite("cf.", c.cf)
+    _check_finite("gains.", c.gains)
+    for name in ("num_agents", "num_obstacles", "num_moving", "min_moving", "num_gates", "sim_freq", "ctrl_freq", "policy_freq"):
+        if not isinstance(getattr(c, name), int) or isinstance(getattr(c, name), bool):
+            _fail(name, getattr(c, name), "must be an integer")
+    if not 1 <= c.num_agents <= MAX_AGENTS:
+        _fail("num_agents", c.num_agents, f"must be between 1 and {MAX_AGENTS}")
+    for name in ("num_obstacles", "num_moving", "min_moving", "num_gates"):
+        if getattr(c, name) < 0:
+            _fail(name, getattr(c, name), "must be >= 0")
+    if c.min_moving > c.num_moving:
+        _fail("min_moving", c.min_moving, f"must be <= num_moving={c.num_moving}")
+    if c.sim_freq < 240:
+        _fail("sim_freq", c.sim_freq, "must be >= 240 Hz")
+    if c.ctrl_freq <= 0 or c.sim_freq % c.ctrl_freq:
+        _fail("ctrl_freq", c.ctrl_freq, f"must divide sim_freq={c.sim_freq}")
+    if c.policy_freq <= 0 or c.ctrl_freq % c.policy_freq:
+        _fail("policy_freq", c.policy_freq, f"must divide ctrl_freq={c.ctrl_freq}")
+    for name in ("episode_seconds", "max_speed", "gate_half_opening", "gate_bar", "obstacle_radius",
+                 "obstacle_height", "obstacle_spacing", "goal_radius", "start_spacing", "moving_period",
+                 "safety_margin", "track_height"):
+        if getattr(c, name) <= 0:
+            _fail(name, getattr(c, name), "must be > 0")
+    if c.layout_jitter < 0:
+        _fail("layout_jitter", c.layout_jitter, "must be >= 0")
+    if c.reward not in REWARDS:
+        _fail("reward", c.reward, f"allowed: {', '.join(REWARDS)}")
+    if any(lo >= hi for lo, hi in zip(c.arena_low, c.arena_high)):
+        _fail("arena_low", c.arena_low, f"must be below arena_high={c.arena_high} on every axis")

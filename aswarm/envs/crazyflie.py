@@ -1,0 +1,74 @@
+"""Crazyflie 2.x physical constants and the motor mixing they imply.
+
+Values follow gym-pybullet-drones' ``cf2x.urdf`` (see ``shared/crazyflie.md``).
+Motor order and spin, X configuration seen from above:
+
+====== ================ ==================
+motor  position (x, y)  spin
+====== ================ ==================
+0      (+, -) front-right counter-clockwise
+1      (-, -) rear-right  clockwise
+2      (-, +) rear-left   counter-clockwise
+3      (+, +) front-left  clockwise
+====== ================ ==================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class CrazyflieParams:
+    mass: float = 0.027  # kg
+    arm_length: float = 0.0397  # m, centre to motor
+    inertia: tuple[float, float, float] = (1.4e-5, 1.4e-5, 2.17e-5)  # kg m^2
+    kf: float = 3.16e-10  # N / RPM^2
+    km: float = 7.94e-12  # N m / RPM^2
+    thrust_to_weight: float = 2.25
+    gravity: float = 9.8  # m/s^2, as gym-pybullet-drones uses
+    collision_radius: float = 0.06  # m, radius of the collision sphere
+    body_half_height: float = 0.0125  # m, for drawing only
+
+    @property
+    def weight(self) -> float:
+        return self.mass * self.gravity
+
+    @property
+    def hover_rpm(self) -> float:
+        return math.sqrt(self.weight / (4.0 * self.kf))
+
+    @property
+    def max_rpm(self) -> float:
+        return math.sqrt(self.thrust_to_weight * self.weight / (4.0 * self.kf))
+
+    @property
+    def max_motor_thrust(self) -> float:
+        return self.kf * self.max_rpm**2
+
+    @property
+    def motor_positions(self) -> np.ndarray:
+        """[4, 2] motor (x, y) in the body frame, in motor order."""
+        a = self.arm_length / math.sqrt(2.0)
+        return np.array([[a, -a], [-a, -a], [-a, a], [a, a]])
+
+    @property
+    def motor_spin(self) -> np.ndarray:
+        """[4] +1 counter-clockwise, -1 clockwise (seen from above)."""
+        return np.array([1.0, -1.0, 1.0, -1.0])
+
+    def mixer(self) -> np.ndarray:
+        """[4, 4] maps per-motor thrusts f to [T, tau_x, tau_y, tau_z] (body frame).
+
+        A counter-clockwise rotor pushes the body clockwise, hence ``-spin``.
+        """
+        xy = self.motor_positions
+        return np.stack([
+            np.ones(4),
+            xy[:, 1],  # tau_x = sum(y_i f_i)
+            -xy[:, 0],  # tau_y = -sum(x_i f_i)
+            -self.motor_spin * self.km / self.kf,
+        ])

@@ -1,0 +1,143 @@
+"""Rigid-body dynamics of the swarm: MJX is the physics of record.
+
+Each drone is a MuJoCo free body. Motor speeds (RPM) become per-motor thrust
+``kf * rpm^2`` and yaw torque ``km * rpm^2``; their resultant wrench about the
+centre of mass is applied through ``xfrc_applied`` and ``mjx.step`` integrates
+(semi-implicit Euler, sparse mass matrix: see ``shared/crazyflie.md``).
+
+Conventions: quaternions are MuJoCo's ``[w, x, y, z]``; linear velocity is in
+the world frame; angular velocity is in the **body** frame (MuJoCo's free-joint
+``qvel``).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from aswarm.envs import scene
+from aswarm.envs.crazyflie import CrazyflieParams
+
+
+@struct.dataclass
+class DroneState:
+    """Kinematic state of every drone; leading axis is the drone."""
+
+    pos: jax.Array  # [n, 3] world, m
+    quat: jax.Array  # [n, 4] body->world, [w, x, y, z]
+    vel: jax.Array  # [n, 3] world, m/s
+    ang_vel: jax.Array  # [n, 3] body, rad/s
+
+
+def quat_to_rotmat(q: jax.Array) -> jax.Array:
+    """[..., 4] unit quaternions [w, x, y, z] -> [..., 3, 3] body->world rotations."""
+    w, x, y, z = jnp.moveaxis(q, -1, 0)
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def drone_state(data: mjx.Data, num_agents: int) -> DroneState:
+    qpos = data.qpos.reshape(num_agents, 7)
+    qvel = data.qvel.reshape(num_agents, 6)
+    return DroneState(pos=qpos[:, :3], quat=qpos[:, 3:], vel=qvel[:, :3], ang_vel=qvel[:, 3:])
+
+
+def set_drone_state(data: mjx.Data, s: DroneState) -> mjx.Data:
+    qpos = jnp.concatenate([s.pos, s.quat], -1).reshape(-1)
+    qvel = jnp.concatenate([s.vel, s.ang_vel], -1).reshape(-1)
+    return data.replace(qpos=qpos, qvel=qvel)
+
+
+def motor_wrench(rpm: jax.Array, cf: CrazyflieParams) -> jax.Array:
+    """[n, 4] motor RPM -> [n, 4] body-frame [thrust, tau_x, tau_y, tau_z]."""
+    rpm = jnp.clip(rpm, 0.0, cf.max_rpm)
+    thrusts = cf.kf * rpm**2
+    return thrusts @ jnp.asarray(cf.mixer(), dtype=rpm.dtype).T
+
+
+def apply_wrench(data: mjx.Data, quat: jax.Array, wrench: jax.Array) -> mjx.Data:
+    """Write body-frame wrenches [n, 4] of the drones into ``xfrc_applied`` (world frame)."""
+    rot = quat_to_rotmat(quat)
+    force = rot[:, :, 2] * wrench[:, :1]
+    torque = jnp.einsum("nij,nj->ni", rot, wrench[:, 1:])
+    # Body 0 is the world; drones are bodies 1..n in the physics model.
+    xfrc = data.xfrc_applied.at[1:].set(jnp.concatenate([force, torque], -1))
+    return data.replace(xfrc_applied=xfrc)
+
+
+def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: CrazyflieParams) -> mjx.Data:
+    """One physics step with motor speeds ``rpm`` [n, 4] held constant."""
+    n = rpm.shape[0]
+    quat = data.qpos.reshape(n, 7)[:, 3:]
+    return mjx.step(model, apply_wrench(data, quat, motor_wrench(rpm, cf)))
+
+
+@functools.lru_cache(maxsize=32)
+def physics_model(num_agents: int, sim_freq: int, cf: CrazyflieParams = CrazyflieParams()):
+    """(mujoco.MjModel, mjx.Model) of ``num_agents`` drones stepped at ``sim_freq`` Hz."""
+    m = scene.build_model(num_agents, sim_freq, cf, physics_only=True)
+    return m, mjx.put_model(m)
+
+
+@struct.dataclass
+class Trajectory:
+    """States after each physics step; leading axes [T, n]."""
+
+    time: jax.Array  # [T] s
+    pos: jax.Array  # [T, n, 3] world, m
+    quat: jax.Array  # [T, n, 4] [w, x, y, z]
+    vel: jax.Array  # [T, n, 3] world, m/s
+    ang_vel: jax.Array  # [T, n, 3] body, rad/s
+
+
+def simulate_rpm(
+    initial: DroneState,
+    rpm: jax.Array | np.ndarray,
+    sim_freq: int = 250,
+    cf: CrazyflieParams = CrazyflieParams(),
+) -> Trajectory:
+    """Open-loop flight of a swarm under given motor speeds, for cross-checking simulators.
+
+    Args:
+      initial: state of the ``n`` drones at t = 0 (quaternions ``[w, x, y, z]``).
+      rpm: ``[T, n, 4]`` motor speeds in RPM, one row per physics step at
+        ``sim_freq`` Hz, in the motor order of ``crazyflie.py``; clipped to
+        ``[0, cf.max_rpm]``.
+      sim_freq: physics rate in Hz.
+      cf: drone constants.
+
+    Returns:
+      The :class:`Trajectory` after each of the ``T`` steps (time ``(k+1)/sim_freq``).
+    """
+    rpm = jnp.asarray(rpm, jnp.float32)
+    if rpm.ndim != 3 or rpm.shape[2] != 4:
+        raise ValueError(f"rpm must have shape [T, n_drones, 4], got {tuple(rpm.shape)}")
+    n = rpm.shape[1]
+    if initial.pos.shape != (n, 3):
+        raise ValueError(f"initial.pos must have shape ({n}, 3) to match rpm, got {tuple(initial.pos.shape)}")
+    _, mx = physics_model(n, sim_freq, cf)
+    return _simulate(mx, initial, rpm, cf)
+
+
+@functools.partial(jax.jit, static_argnums=(3,))
+def _simulate(mx: mjx.Model, initial: DroneState, rpm: jax.Array, cf: CrazyflieParams) -> Trajectory:
+    n = rpm.shape[1]
+    data = set_drone_state(mjx.make_data(mx), jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), initial))
+
+    def body(d, r):
+        d = physics_step(mx, d, r, cf)
+        s = drone_state(d, n)
+        return d, Trajectory(time=d.time, pos=s.pos, quat=s.quat, vel=s.vel, ang_vel=s.ang_vel)
+
+    return jax.lax.scan(body, data, rpm)[1]

@@ -1,0 +1,345 @@
+"""The swarm environment: pure ``reset(key)`` and ``step(state, action)``.
+
+One env step (``1 / policy_freq`` s) holds the velocity command, runs the
+onboard controller at ``ctrl_freq`` and MJX physics at ``sim_freq`` inside
+``lax.scan``; collisions, gate crossings and goal arrivals are checked after
+every physics step. A drone that completes its mission leaves the course (it
+stops and no longer counts for collisions or as a neighbour), as a finished
+drone lands in real flights. The episode terminates when every drone has
+finished or any drone collides, and is truncated at ``episode_seconds``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from aswarm.envs import collisions as col
+from aswarm.envs.config import EnvConfig
+from aswarm.envs.controller import velocity_controller
+from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
+from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at, geometry, sample_layout
+
+OWN_FIELDS = (
+    ("target_rel", 3, "m, world: drone position minus its current gate centre or goal"),
+    ("target_normal", 3, "unit, world: direction of passage of the current gate (0 for a goal)"),
+    ("next_target_rel", 3, "m, world: drone position minus the following gate (the current one if last)"),
+    ("altitude", 1, "m above the floor"),
+    ("quat", 4, "body->world, [w, x, y, z]"),
+    ("vel", 3, "m/s, world"),
+    ("ang_vel", 3, "rad/s, body"),
+)
+CYL_FIELDS = (
+    ("rel_xy", 2, "m, world: cylinder centre minus drone position"),
+    ("clearance", 1, "m: horizontal gap between drone sphere and cylinder surface"),
+    ("vel_xy", 2, "m/s, world: cylinder velocity"),
+    ("present", 1, "1 if the cylinder exists this episode, else 0 (all its features are 0)"),
+)
+NBR_FIELDS = (
+    ("rel_pos", 3, "m, world: neighbour position minus drone position"),
+    ("rel_vel", 3, "m/s, world: neighbour velocity minus drone velocity"),
+    ("present", 1, "1 if the neighbour is still flying, else 0 (all its features are 0)"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsLayout:
+    """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""
+
+    num_cylinders: int
+    num_neighbours: int
+    own_dim: int = sum(f[1] for f in OWN_FIELDS)
+    cyl_dim: int = sum(f[1] for f in CYL_FIELDS)
+    nbr_dim: int = sum(f[1] for f in NBR_FIELDS)
+
+    @property
+    def size(self) -> int:
+        return self.own_dim + self.num_cylinders * self.cyl_dim + self.num_neighbours * self.nbr_dim
+
+    def split(self, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """[..., size] -> own [..., own_dim], cylinders [..., M, cyl_dim], neighbours [..., n-1, nbr_dim]."""
+        a = self.own_dim
+        b = a + self.num_cylinders * self.cyl_dim
+        lead = obs.shape[:-1]
+        return (obs[..., :a], obs[..., a:b].reshape(*lead, self.num_cylinders, self.cyl_dim),
+                obs[..., b:].reshape(*lead, self.num_neighbours, self.nbr_dim))
+
+    def describe(self) -> list[dict]:
+        """Field-by-field description with offsets, units and frames (for export manifests)."""
+        out, off = [], 0
+        for group, fields, count in (("own", OWN_FIELDS, 1), ("cylinder", CYL_FIELDS, self.num_cylinders),
+                                     ("neighbour", NBR_FIELDS, self.num_neighbours)):
+            for k in range(count):
+                for name, size, unit in fields:
+                    out.append(dict(group=group, index=k, name=name, offset=off, size=size, meaning=unit))
+                    off += size
+        return out
+
+
+@struct.dataclass
+class Tracker:
+    """Per-episode progress and accumulators; leading axis is the drone."""
+
+    target: jax.Array  # [n] int32, index of the current waypoint
+    finished: jax.Array  # [n] bool
+    collided: jax.Array  # [n] bool
+    collision_kind: jax.Array  # [n] int32, collisions.KINDS
+    min_clearance: jax.Array  # [n] m, to cylinders
+    separation_sum: jax.Array  # [n] sum over steps of the nearest-neighbour distance
+    speed_sum: jax.Array  # [n]
+    finish_time: jax.Array  # [n] s (episode time while not finished)
+    episode_return: jax.Array  # [n]
+    steps: jax.Array  # [] int32
+
+
+@struct.dataclass
+class State:
+    """Brax / MuJoCo Playground style state of one world."""
+
+    data: mjx.Data  # physics of record
+    obs: jax.Array  # [n_agents, obs_dim]
+    critic_obs: jax.Array  # [critic_obs_dim] centralized critic input (all rows of obs)
+    reward: jax.Array  # [n_agents]
+    cost: jax.Array  # [n_agents] in [0, 1]: 1 at collision, rising as clearance falls below the margin
+    done: jax.Array  # [] float, terminated or truncated
+    truncated: jax.Array  # [] float, time limit reached (not a terminal state)
+    layout: Layout
+    tracker: Tracker
+    metrics: dict
+    info: dict
+
+
+class SwarmEnv:
+    """A scenario's swarm environment. Use :func:`aswarm.envs.make` to build one."""
+
+    def __init__(self, config: EnvConfig):
+        self.config = config
+        self.geometry = geometry(config)  # raises if the obstacles cannot be placed
+        self.kind = SCENARIOS[config.scenario].kind
+        self.mj_model, self.mjx_model = physics_model(config.num_agents, config.sim_freq, config.cf)
+        self._data0 = mjx.make_data(self.mjx_model)
+        n = config.num_agents
+        self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=n - 1)
+        self._others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
+
+    # Sizes, as MuJoCo Playground names them.
+    @property
+    def num_agents(self) -> int:
+        return self.config.num_agents
+
+    @property
+    def observation_size(self) -> int:
+        return self.obs_layout.size
+
+    @property
+    def critic_observation_size(self) -> int:
+        return self.num_agents * self.observation_size
+
+    @property
+    def action_size(self) -> int:
+        return 3
+
+    @property
+    def num_waypoints(self) -> int:
+        return self.config.num_gates if self.kind == "track" else 1
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, key: jax.Array) -> State:
+        cfg = self.config
+        n = cfg.num_agents
+        layout = sample_layout(key, cfg, self.geometry)
+        drones = DroneState(
+            pos=layout.start_pos,
+            quat=jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)),
+            vel=jnp.zeros((n, 3)),
+            ang_vel=jnp.zeros((n, 3)),
+        )
+        data = set_drone_state(self._data0, drones)
+        zeros = jnp.zeros(n)
+        tracker = Tracker(
+            target=jnp.zeros(n, jnp.int32), finished=jnp.zeros(n, bool), collided=jnp.zeros(n, bool),
+            collision_kind=jnp.zeros(n, jnp.int32), min_clearance=jnp.full(n, col.FAR),
+            separation_sum=zeros, speed_sum=zeros, finish_time=zeros, episode_return=zeros,
+            steps=jnp.zeros((), jnp.int32),
+        )
+        obs = self._observe(drones, layout, tracker, jnp.zeros(()))
+        state = State(data=data, obs=obs, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
+                      done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
+                      metrics={}, info={})
+        return state.replace(metrics=self._metrics(tracker))
+
+    # ------------------------------------------------------------------- step
+    def step(self, state: State, action: jax.Array) -> State:
+        """Advance one policy step; ``action`` [n_agents, 3] are world-frame velocity commands (m/s)."""
+        cfg = self.config
+        n = cfg.num_agents
+        self.check_action(action)
+        # Inside jit a NaN cannot raise; a NaN command becomes a hover command.
+        cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -cfg.max_speed, cfg.max_speed)
+        tr0 = state.tracker
+        active0 = ~tr0.finished
+        cmd = jnp.where(active0[:, None], cmd, 0.0)
+        layout = state.layout
+        frames = col.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
+        p0 = drone_state(state.data, n).pos
+        target0 = self._target_pos(layout, tr0.target)
+
+        def control(carry, _):
+            data, tr, hazard = carry
+            rpm = velocity_controller(drone_state(data, n), cmd, cfg.gains, cfg.cf)
+
+            def inner(c, _):
+                d, t, h = c
+                prev = drone_state(d, n).pos
+                d = physics_step(self.mjx_model, d, rpm, cfg.cf)
+                t, hz = self._check(prev, drone_state(d, n).pos, d.time, layout, frames, t)
+                return (d, t, jnp.minimum(h, hz)), None
+
+            return jax.lax.scan(inner, (data, tr, hazard), None, length=cfg.ctrl_every)[0], None
+
+        (data, tr, hazard), _ = jax.lax.scan(
+            control, (state.data, tr0, jnp.full(n, col.FAR)), None, length=cfg.substeps // cfg.ctrl_every
+        )
+
+        drones = drone_state(data, n)
+        t = data.time
+        newly_finished = tr.finished & ~tr0.finished
+        newly_collided = tr.collided & ~tr0.collided
+        passed = (tr.target - tr0.target).astype(jnp.float32)
+
+        # Reward, per drone flying at the start of the step.
+        if cfg.reward == "paper":
+            d = jnp.linalg.norm(drones.pos - self._target_pos(layout, tr.target), axis=-1)
+            reward = 1.0 / (d + cfg.paper_epsilon)
+        else:
+            progress = jnp.linalg.norm(p0 - target0, axis=-1) - jnp.linalg.norm(drones.pos - target0, axis=-1)
+            reward = (cfg.progress_weight * progress + cfg.gate_bonus * passed
+                      + cfg.finish_bonus * newly_finished - cfg.time_penalty * cfg.dt)
+        reward = jnp.where(newly_collided, -cfg.collision_penalty, reward)
+        reward = jnp.where(active0, reward, 0.0)
+        cost = jnp.clip((cfg.safety_margin - hazard) / cfg.safety_margin, 0.0, 1.0)
+        cost = jnp.where(active0, jnp.where(tr.collided, 1.0, cost), 0.0)
+
+        # Episode statistics.
+        speed = jnp.linalg.norm(drones.vel, axis=-1)
+        nearest = jnp.min(col.drone_clearance(drones.pos, jnp.ones(n, bool), 0.0), axis=-1, initial=col.FAR)
+        tr = tr.replace(
+            separation_sum=tr.separation_sum + jnp.where(n > 1, nearest, 0.0),
+            speed_sum=tr.speed_sum + jnp.where(active0, speed, 0.0),
+            finish_time=jnp.where(tr.finished, tr.finish_time, t),
+            episode_return=tr.episode_return + reward,
+            steps=tr.steps + 1,
+        )
+        terminated = jnp.all(tr.finished) | jnp.any(tr.collided)
+        truncated = (tr.steps >= cfg.max_steps) & ~terminated
+        obs = self._observe(drones, layout, tr, t)
+        return state.replace(
+            data=data, obs=obs, critic_obs=obs.reshape(-1), reward=reward, cost=cost,
+            done=(terminated | truncated).astype(jnp.float32), truncated=truncated.astype(jnp.float32),
+            tracker=tr, metrics=self._metrics(tr),
+        )
+
+    # --------------------------------------------------------------- helpers
+    def check_action(self, action) -> None:
+        """Raise ``ValueError`` for an action of the wrong shape, or (outside jit) with NaN/Inf."""
+        want = (self.num_agents, 3)
+        if tuple(np.shape(action)) != want:
+            raise ValueError(f"action has shape {tuple(np.shape(action))}: allowed shape is {want} "
+                             "(one world-frame velocity command [vx, vy, vz] per drone)")
+        if not isinstance(action, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(action))):
+            raise ValueError(f"action contains NaN or Inf: {np.asarray(action).tolist()}; allowed: finite m/s")
+
+    def _target_pos(self, layout: Layout, target: jax.Array) -> jax.Array:
+        k = jnp.minimum(target, self.num_waypoints - 1)
+        return jnp.take_along_axis(layout.waypoints, k[:, None, None], axis=1)[:, 0]
+
+    def _check(self, prev, pos, t, layout: Layout, frames, tr: Tracker):
+        """Advance waypoints and detect collisions after one physics step."""
+        cfg = self.config
+        r = cfg.cf.collision_radius
+        active = ~tr.finished
+        if self.kind == "track":
+            k = jnp.minimum(tr.target, cfg.num_gates - 1)
+            crossed = col.gate_crossed(prev, pos, layout.gate_pos[k], layout.gate_yaw[k], cfg.gate_half_opening)
+            target = tr.target + (crossed & active)
+            reached = target >= cfg.num_gates
+        else:
+            target = tr.target
+            reached = jnp.linalg.norm(pos - layout.waypoints[:, 0], axis=-1) < cfg.goal_radius
+        finished = tr.finished | (reached & active)
+
+        cyl_pos, _ = cylinders_at(layout, t)
+        c_cyl = jnp.min(col.cylinder_clearance(pos, cyl_pos, layout.cyl_radius, layout.cyl_height,
+                                               layout.cyl_present, r), -1, initial=col.FAR)
+        c_drone = jnp.min(col.drone_clearance(pos, active, r), -1, initial=col.FAR)
+        c_gate = jnp.min(col.gate_clearance(pos, frames, cfg.gate_bar, r), -1, initial=col.FAR)
+        c_floor = pos[:, 2] - r
+        oob = col.out_of_bounds(pos, cfg.arena_low, cfg.arena_high)
+        gaps = jnp.stack([c_cyl, c_drone, c_gate, c_floor], -1)
+        hit = jnp.concatenate([gaps < 0, oob[:, None]], -1) & active[:, None]
+        kind = jnp.where(jnp.any(hit, -1), jnp.argmax(hit, -1) + 1, col.NONE)
+        new = (kind != col.NONE) & ~tr.collided
+        tr = tr.replace(
+            target=target, finished=finished & ~(tr.collided | new),
+            collided=tr.collided | new,
+            collision_kind=jnp.where(new, kind, tr.collision_kind),
+            min_clearance=jnp.where(active, jnp.minimum(tr.min_clearance, c_cyl), tr.min_clearance),
+        )
+        return tr, jnp.where(active, jnp.min(gaps, -1), col.FAR)
+
+    def _observe(self, drones: DroneState, layout: Layout, tr: Tracker, t) -> jax.Array:
+        cfg = self.config
+        n = cfg.num_agents
+        r = cfg.cf.collision_radius
+        k = jnp.minimum(tr.target, self.num_waypoints - 1)
+        target = self._target_pos(layout, k)
+        nxt = self._target_pos(layout, k + 1)
+        if self.kind == "track":
+            yaw = layout.gate_yaw[k]
+            normal = jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)], -1)
+        else:
+            normal = jnp.zeros((n, 3))
+        own = jnp.concatenate([drones.pos - target, normal, drones.pos - nxt, drones.pos[:, 2:],
+                               drones.quat, drones.vel, drones.ang_vel], -1)
+
+        cyl_pos, cyl_vel = cylinders_at(layout, t)
+        rel = cyl_pos[None] - drones.pos[:, None, :2]  # [n, M, 2]
+        gap = jnp.linalg.norm(rel, axis=-1) - layout.cyl_radius[None] - r
+        present = jnp.broadcast_to(layout.cyl_present[None], gap.shape)
+        cyl = jnp.concatenate([rel, gap[..., None], jnp.broadcast_to(cyl_vel[None], rel.shape),
+                               jnp.ones_like(gap)[..., None]], -1)
+        cyl = jnp.where(present[..., None], cyl, 0.0)
+
+        flying = ~tr.finished
+        others = self._others
+        nbr = jnp.concatenate([drones.pos[others] - drones.pos[:, None], drones.vel[others] - drones.vel[:, None],
+                               jnp.ones(others.shape + (1,))], -1)
+        nbr = jnp.where(flying[others][..., None], nbr, 0.0)
+        return jnp.concatenate([own, cyl.reshape(n, -1), nbr.reshape(n, -1)], -1)
+
+    def _metrics(self, tr: Tracker) -> dict:
+        """Episode outcome so far; read it on the step where ``done`` is 1."""
+        cfg = self.config
+        ok = tr.finished & ~tr.collided
+        steps = jnp.maximum(tr.steps, 1).astype(jnp.float32)
+        m = {
+            "success": jnp.all(ok).astype(jnp.float32),
+            "drone_success": jnp.mean(ok.astype(jnp.float32)),
+            "collision": jnp.any(tr.collided).astype(jnp.float32),
+            "drone_collision": jnp.mean(tr.collided.astype(jnp.float32)),
+            "progress": jnp.mean(jnp.where(tr.finished, 1.0, tr.target / self.num_waypoints)),
+            "min_clearance": jnp.min(tr.min_clearance),
+            "mean_separation": jnp.mean(tr.separation_sum) / steps,
+            "mission_time": jnp.max(tr.finish_time),
+            "mean_speed": jnp.mean(tr.speed_sum / jnp.maximum(tr.finish_time * cfg.policy_freq, 1.0)),
+            "episode_return": jnp.mean(tr.episode_return),
+            "episode_length": tr.steps.astype(jnp.float32),
+        }
+        for kind, name in enumerate(col.KINDS[1:], start=1):
+            m[f"collision_{name}"] = jnp.any(tr.collided & (tr.collision_kind == kind)).astype(jnp.float32)
+        return m
