@@ -65,7 +65,6 @@ def time_env(scenario: str, worlds: int, steps: int, **overrides) -> Row:
     env = envs.make(scenario, **overrides)
     fn = rollout_fn(env, worlds, steps)
     t0 = time.perf_counter()
-    jax.block_until_ready(fn.lower(jax.random.PRNGKey(0)).compile())
     compiled = fn.lower(jax.random.PRNGKey(0)).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(jax.random.PRNGKey(1)))  # warm-up
@@ -76,8 +75,6 @@ def time_env(scenario: str, worlds: int, steps: int, **overrides) -> Row:
 
 def time_stages(scenario: str, worlds: int, steps: int) -> dict[str, float]:
     """Seconds per env step of the batch for physics alone, physics + controller, and the whole step."""
-    from mujoco import mjx
-
     from aswarm.envs.controller import velocity_controller
     from aswarm.envs.dynamics import drone_state, physics_step
 
@@ -112,7 +109,6 @@ def time_stages(scenario: str, worlds: int, steps: int) -> dict[str, float]:
         t0 = time.perf_counter()
         jax.block_until_ready(f(arg))
         out[name] = (time.perf_counter() - t0) / steps
-    del mjx
     return out
 
 
@@ -144,3 +140,111 @@ def machine() -> str:
     except OSError:
         pass
     return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
+
+
+def ensure_peer_venv(venv: Path) -> str | None:
+    """Python of a virtualenv with crazyflow (created on first use), or None if it cannot be had."""
+    python = venv / "bin" / "python"
+    if not (venv / ".crazyflow-installed").exists():
+        print(f"creating {venv} with crazyflow (first use) ...", flush=True)
+        steps = [[sys.executable, "-m", "venv", str(venv)],
+                 [str(python), "-m", "pip", "install", "-q", CRAZYFLOW_REQUIREMENT]]
+        for cmd in steps:
+            if subprocess.run(cmd, capture_output=True).returncode != 0:
+                return None
+        (venv / ".crazyflow-installed").touch()
+    return str(python)
+
+
+CRAZYFLOW_REQUIREMENT = "crazyflow>=0.4,<0.5"
+START, END = "<!-- env-bench:start -->", "<!-- env-bench:end -->"
+
+
+def write_section(path: Path, body: str, start: str = START, end: str = END) -> None:
+    """Replace the marked section of ``path`` (or append it), leaving the rest of the file as it was."""
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    block = f"{start}\n{body.rstrip()}\n{end}"
+    if start in text and end in text:
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def main(args) -> int:
+    from aswarm.envs import make
+
+    env = make(args.scenario)  # validates the scenario before any compile
+    cfg = env.config
+    rows: list[Row] = []
+    print(f"{args.scenario}: {env.num_agents} drones, physics {cfg.sim_freq} Hz, controller {cfg.ctrl_freq} Hz, "
+          f"policy {cfg.policy_freq} Hz ({cfg.substeps} MJX steps per env step)", flush=True)
+    for w in args.worlds:
+        r = time_env(args.scenario, w, args.steps)
+        rows.append(r)
+        print(f"  {w:5d} worlds: {r.env_steps_per_s:12,.0f} env-steps/s  {r.drone_steps_per_s:12,.0f} drone-steps/s"
+              f"  (compile {r.compile_s:.1f} s)", flush=True)
+    stage_worlds = 1024 if 1024 in args.worlds else max(args.worlds)
+    stages = time_stages(args.scenario, stage_worlds, min(args.steps, 50))
+    peers: list[Row] = []
+    peer_note = "skipped (--no-peer)"
+    if not args.no_peer:
+        python = ensure_peer_venv(args.peer_venv)
+        if python is None:
+            peer_note = f"crazyflow could not be installed into {args.peer_venv}"
+        else:
+            peer_note = ""
+            for w in args.worlds:
+                r = time_crazyflow(w, args.steps, python)
+                if isinstance(r, str):
+                    peer_note = r
+                    break
+                peers.append(r)
+                print(f"  crazyflow {w:5d} worlds: {r.env_steps_per_s:12,.0f} env-steps/s", flush=True)
+    if peer_note:
+        print(f"  crazyflow: {peer_note}")
+
+    lines = [
+        "## Environment throughput (`make bench`)",
+        "",
+        f"Command: `aswarm bench --scenario {args.scenario} --worlds {','.join(map(str, args.worlds))} "
+        f"--steps {args.steps}`  ",
+        f"Machine: {machine()}  ",
+        f"Date: {time.strftime('%Y-%m-%d')}  ",
+        f"Scenario `{args.scenario}`: {env.num_agents} drones, {cfg.num_cylinders} cylinders, {cfg.num_gates} gates; "
+        f"physics (MJX, every sub-step) {cfg.sim_freq} Hz, onboard controller {cfg.ctrl_freq} Hz, policy "
+        f"{cfg.policy_freq} Hz = {cfg.substeps} `mjx.step` per env step; random actions, auto-reset, "
+        f"{args.steps} env steps inside one `lax.scan`, compile time apart.",
+        "",
+        "| simulator | worlds | env-steps/s | drone-steps/s | compile s | crazyflow ratio |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    peer_by_w = {p.worlds: p for p in peers}
+    for r in rows:
+        p = peer_by_w.get(r.worlds)
+        ratio = f"{r.env_steps_per_s / p.env_steps_per_s:.3f}" if p else "-"
+        lines.append(f"| {r.name} | {r.worlds} | {r.env_steps_per_s:,.0f} | {r.drone_steps_per_s:,.0f} | "
+                     f"{r.compile_s:.1f} | {ratio} |")
+    for p in peers:
+        lines.append(f"| {p.name} | {p.worlds} | {p.env_steps_per_s:,.0f} | {p.drone_steps_per_s:,.0f} | "
+                     f"{p.compile_s:.1f} | 1 |")
+    if peer_note:
+        lines += ["", f"crazyflow: {peer_note}."]
+    total = stages["full env step"]
+    lines += [
+        "",
+        f"Where the time goes ({stage_worlds} worlds, seconds per batched env step, each stage timed on its own):",
+        "",
+        "| stage | s / env step | share |",
+        "|---|---:|---:|",
+    ]
+    prev = 0.0
+    for name, sec in stages.items():
+        lines.append(f"| {name} | {sec - prev:.5f} | {(sec - prev) / total:.0%} |")
+        prev = sec
+    lines.append(f"| total | {total:.5f} | 100% |")
+    write_section(args.out, "\n".join(lines))
+    print(f"wrote {args.out}")
+    return 0

@@ -101,7 +101,8 @@ def validate(c: EnvConfig) -> None:
     _check_finite("", c)
     _check_finite("cf.", c.cf)
     _check_finite("gains.", c.gains)
-    for name in ("num_agents", "num_obstacles", "num_moving", "min_moving", "num_gates", "sim_freq", "ctrl_freq", "policy_freq"):
+    for name in ("num_agents", "num_obstacles", "num_moving", "min_moving", "num_gates",
+                 "sim_freq", "ctrl_freq", "policy_freq"):
         if not isinstance(getattr(c, name), int) or isinstance(getattr(c, name), bool):
             _fail(name, getattr(c, name), "must be an integer")
     if not 1 <= c.num_agents <= MAX_AGENTS:

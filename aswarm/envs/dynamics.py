@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from aswarm.envs import scene
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.mjx_import import mjx
 
 
 @struct.dataclass

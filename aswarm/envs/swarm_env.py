@@ -17,12 +17,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from aswarm.envs import collisions as col
 from aswarm.envs.config import EnvConfig
 from aswarm.envs.controller import velocity_controller
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
+from aswarm.envs.mjx_import import mjx
 from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at, geometry, sample_layout
 
 OWN_FIELDS = (

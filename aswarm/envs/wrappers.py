@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from aswarm.envs.swarm_env import State, SwarmEnv
+from aswarm.envs.swarm_env import State
 
 
 class Wrapper:

@@ -1,0 +1,88 @@
+"""The ``aswarm`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _positive_ints(text: str) -> list[int]:
+    try:
+        vals = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid list {text!r}: allowed: comma-separated positive integers") from None
+    if not vals or min(vals) <= 0:
+        raise argparse.ArgumentTypeError(f"invalid list {text!r}: allowed: comma-separated positive integers")
+    return vals
+
+
+def cmd_scenarios(args: argparse.Namespace) -> int:
+    from aswarm.envs import scenarios
+
+    rows = []
+    for name, sc in scenarios.SCENARIOS.items():
+        cfg = scenarios.preset(name)
+        geo = scenarios.geometry(cfg)
+        moving = f"{cfg.min_moving}-{cfg.num_moving}" if cfg.num_moving else "0"
+        task = f"{cfg.num_gates} gates in order" if sc.kind == "track" else "goal point"
+        length = f"{scenarios.track_length(cfg):.1f} m" if sc.kind == "track" else "-"
+        rows.append((name, str(cfg.num_agents), str(cfg.num_obstacles), moving, task, length,
+                     f"{cfg.episode_seconds:g} s", str(len(geo.slot_pos)), sc.description))
+    head = ("scenario", "drones", "static", "moving", "task", "lap", "limit", "slots", "description")
+    widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head) - 1)]
+    for r in [head, *rows]:
+        print("  ".join(c.ljust(w) for c, w in zip(r[:-1], widths)) + "  " + r[-1])
+    print("\nOverride any field, e.g. num_agents=8 or num_obstacles=4 (aswarm.envs.make(name, **overrides)).")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from aswarm import bench
+
+    return bench.main(args)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    print("training arrives with the trainer issue (#3): the environment is ready "
+          f"(`aswarm scenarios`, `aswarm bench`); scenario {args.scenario!r} validated.")
+    from aswarm import envs
+
+    envs.make(args.scenario)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="aswarm", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("scenarios", help="list the scenarios with their drones, obstacles and gates")
+    s.set_defaults(func=cmd_scenarios)
+
+    b = sub.add_parser("bench", help="environment throughput; writes BENCHMARKS.md")
+    b.add_argument("--scenario", default="race")
+    b.add_argument("--worlds", type=_positive_ints, default=[1, 64, 1024, 4096])
+    b.add_argument("--steps", type=int, default=200, help="env steps per timed rollout")
+    b.add_argument("--peer-venv", type=Path, default=Path(".venv-crazyflow"),
+                   help="virtualenv holding crazyflow, created on first use")
+    b.add_argument("--no-peer", action="store_true", help="skip the crazyflow comparison")
+    b.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
+    b.set_defaults(func=cmd_bench)
+
+    t = sub.add_parser("train", help="train a swarm policy")
+    t.add_argument("--scenario", default="race")
+    t.set_defaults(func=cmd_train)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ValueError as e:  # config and input errors: one line, non-zero exit
+        print(f"aswarm {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

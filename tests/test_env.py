@@ -1,0 +1,180 @@
+"""Environment API: shapes, resets, purity under jit/vmap/scan, wrappers, episode outcome, bad input."""
+
+import math
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aswarm import envs
+from aswarm.envs import collisions as col
+from aswarm.envs.dynamics import DroneState, set_drone_state
+
+
+@pytest.fixture(scope="module")
+def race():
+    return envs.make("race")
+
+
+@pytest.mark.parametrize("name", envs.names())
+def test_every_scenario_resets_with_documented_shapes(name):
+    env = envs.make(name)
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    n = env.num_agents
+    chex.assert_shape(s.obs, (n, env.observation_size))
+    chex.assert_shape(s.critic_obs, (env.critic_observation_size,))
+    chex.assert_shape([s.reward, s.cost], (n,))
+    chex.assert_shape([s.done, s.truncated], ())
+    assert env.action_size == 3
+    own, cyl, nbr = env.obs_layout.split(s.obs)
+    chex.assert_shape(own, (n, env.obs_layout.own_dim))
+    chex.assert_shape(cyl, (n, env.config.num_cylinders, env.obs_layout.cyl_dim))
+    chex.assert_shape(nbr, (n, n - 1, env.obs_layout.nbr_dim))
+    assert sum(f["size"] for f in env.obs_layout.describe()) == env.observation_size
+    assert np.isfinite(np.asarray(s.obs)).all()
+    # Layout is valid: cylinders do not overlap each other or the starts.
+    lay = s.layout
+    c = np.asarray(lay.cyl_center)
+    if len(c) > 1:
+        d = np.linalg.norm(c[:, None] - c[None], axis=-1) + np.eye(len(c)) * 9
+        assert d.min() > 2 * env.config.obstacle_radius
+    gaps = col.cylinder_clearance(lay.start_pos, lay.cyl_center, lay.cyl_radius, lay.cyl_height, lay.cyl_present,
+                                  env.config.cf.collision_radius)
+    assert float(jnp.min(gaps, initial=col.FAR)) > 0
+
+
+def test_same_key_same_layout_different_keys_differ(race):
+    reset = jax.jit(race.reset)
+    a, b, c = reset(jax.random.PRNGKey(3)), reset(jax.random.PRNGKey(3)), reset(jax.random.PRNGKey(4))
+    chex.assert_trees_all_equal(a.layout, b.layout)
+    assert not np.allclose(a.layout.cyl_center, c.layout.cyl_center)
+    assert not np.allclose(a.layout.gate_pos, c.layout.gate_pos)
+
+
+def test_nominal_layout_without_jitter_is_fixed_up_to_slot_choice():
+    env = envs.make("race", layout_jitter=0.0)
+    a, b = env.reset(jax.random.PRNGKey(0)), env.reset(jax.random.PRNGKey(1))
+    np.testing.assert_allclose(a.layout.gate_pos, b.layout.gate_pos)
+    np.testing.assert_allclose(a.layout.start_pos, b.layout.start_pos)
+
+
+def test_jit_vmap_scan_match_plain_call(race):
+    key = jax.random.PRNGKey(0)
+    s0 = race.reset(key)
+    action = jnp.tile(jnp.array([1.0, -0.5, 0.2]), (race.num_agents, 1))
+    plain = race.step(s0, action)
+    jitted = jax.jit(race.step)(s0, action)
+    batched = jax.vmap(race.step)(jax.tree.map(lambda x: jnp.stack([x, x]), s0), jnp.stack([action, action]))
+    scanned = jax.lax.scan(lambda s, _: (race.step(s, action), None), s0, None, length=1)[0]
+    for other in (jitted, jax.tree.map(lambda x: x[1], batched), scanned):
+        np.testing.assert_allclose(plain.obs, other.obs, atol=1e-5)
+        np.testing.assert_allclose(plain.reward, other.reward, atol=1e-5)
+
+
+def test_vmapped_autoreset_rollout_in_scan():
+    env = envs.make("hover", episode_seconds=0.2)  # 10 steps per episode
+    wenv = envs.wrap_for_training(env, 3)
+    s = wenv.reset(jax.random.PRNGKey(0))
+    chex.assert_shape(s.obs, (3, 1, env.observation_size))
+
+    def body(s, _):
+        s = wenv.step(s, jnp.zeros((3, 1, 3)))
+        return s, (s.done, s.truncated, s.tracker.steps, s.info["final_obs"], s.obs)
+
+    _, (done, trunc, steps, final_obs, obs) = jax.jit(lambda s: jax.lax.scan(body, s, None, length=25))(s)
+    assert np.asarray(done[9]).tolist() == [1.0] * 3 and np.asarray(trunc[9]).tolist() == [1.0] * 3
+    assert np.asarray(steps[9]).tolist() == [0, 0, 0]  # auto-reset started a new episode
+    assert np.asarray(done[19]).tolist() == [1.0] * 3
+    assert not np.allclose(final_obs[9], obs[9])  # final obs of the old episode kept apart
+
+
+def test_race_gate_passage_advances_target_and_pays_bonus():
+    env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
+    s = env.reset(jax.random.PRNGKey(0))
+    g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
+    normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
+    start = DroneState(pos=(g - 0.3 * normal)[None], quat=jnp.array([[1.0, 0, 0, 0]]), vel=(normal * 1.0)[None],
+                       ang_vel=jnp.zeros((1, 3)))
+    s = s.replace(data=set_drone_state(s.data, start))
+    step = jax.jit(env.step)
+    rewards = []
+    for _ in range(30):
+        s = step(s, (normal * 1.0)[None])
+        rewards.append(float(s.reward[0]))
+    assert int(s.tracker.target[0]) == 1 and not bool(s.tracker.collided[0])
+    assert max(rewards) > env.config.gate_bonus * 0.9
+    np.testing.assert_allclose(s.obs[0, :3], s.data.qpos[:3] - s.layout.gate_pos[1], atol=1e-5)
+
+
+def test_reaching_the_goal_finishes_with_success_metrics():
+    env = envs.make("hover", layout_jitter=0.0)
+    s = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    while not bool(s.done):
+        s = step(s, jnp.clip(-2.0 * s.obs[:, :3], -1.0, 1.0))  # fly at the goal
+    m = {k: float(v) for k, v in s.metrics.items()}
+    assert m["success"] == 1.0 and m["collision"] == 0.0 and m["progress"] == 1.0
+    assert 0 < m["mission_time"] < env.config.episode_seconds
+    assert m["mean_speed"] > 0.1
+    assert float(s.truncated) == 0.0
+
+
+@pytest.mark.parametrize("n", [1, 16])
+def test_number_of_drones_is_configurable(n):
+    env = envs.make("race", num_agents=n)
+    s = jax.jit(env.step)(env.reset(jax.random.PRNGKey(0)), jnp.zeros((n, 3)))
+    chex.assert_shape(s.obs, (n, env.observation_size))
+    assert not bool(s.done)
+
+
+def test_paper_reward_is_inverse_distance(race):
+    env = envs.make("race", reward="paper")
+    s = env.step(env.reset(jax.random.PRNGKey(0)), jnp.zeros((4, 3)))
+    d = jnp.linalg.norm(s.obs[:, :3], axis=-1)
+    np.testing.assert_allclose(s.reward, 1 / (d + 0.001), rtol=1e-4)
+
+
+def test_cost_rises_inside_the_safety_margin():
+    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    s = env.reset(jax.random.PRNGKey(0))
+    p = s.layout.start_pos[0]
+    gap = 0.05  # inside the 0.15 m margin, outside collision
+    x = p[0] + gap + env.config.obstacle_radius + env.config.cf.collision_radius
+    s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[x, p[1]]])))
+    s = env.step(s, jnp.zeros((1, 3)))
+    assert 0.5 < float(s.cost[0]) < 0.8 and not bool(s.tracker.collided[0])
+
+
+# --------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    "name,overrides,message",
+    [
+        ("nowhere", {}, r"unknown scenario 'nowhere': allowed: hover, obstacles, race"),
+        ("race", {"num_agents": 0}, r"invalid num_agents=0: must be between 1 and 64"),
+        ("race", {"num_agents": -3}, r"invalid num_agents=-3"),
+        ("race", {"num_obstacles": 40}, r"cannot place num_obstacles \+ num_moving = 40 cylinders .* at most 13 fit"),
+        ("race", {"max_speed": math.nan}, r"invalid max_speed=nan: must be a finite number"),
+        ("race", {"policy_freq": 60}, r"invalid policy_freq=60: must divide ctrl_freq=250"),
+        ("race", {"sim_freq": 100, "ctrl_freq": 50}, r"invalid sim_freq=100: must be >= 240 Hz"),
+        ("race", {"warp_drive": 1}, r"unknown env config field 'warp_drive'"),
+        ("race", {"reward": "money"}, r"invalid reward='money': allowed: shaped, paper"),
+    ],
+)
+def test_bad_config_is_a_clear_error(name, overrides, message):
+    with pytest.raises(ValueError, match=message):
+        envs.make(name, **overrides)
+
+
+def test_bad_actions_are_clear_errors(race):
+    s = race.reset(jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match=r"action has shape \(4,\): allowed shape is \(4, 3\)"):
+        race.step(s, jnp.zeros(4))
+    with pytest.raises(ValueError, match=r"action has shape \(4, 2\)"):
+        jax.jit(race.step)(s, jnp.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"action contains NaN or Inf"):
+        race.step(s, jnp.full((4, 3), jnp.nan))
+    # Inside jit a NaN cannot raise: it becomes a hover command, never a NaN state.
+    out = jax.jit(race.step)(s, jnp.full((4, 3), jnp.nan))
+    assert np.isfinite(np.asarray(out.obs)).all()
