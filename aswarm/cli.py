@@ -44,11 +44,34 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    print("training arrives with the trainer issue (#3): the environment is ready "
-          f"(`aswarm scenarios`, `aswarm bench`); scenario {args.scenario!r} validated.")
-    from aswarm import envs
+    from aswarm import config_args, envs
+    from aswarm.agents import runner
+    from aswarm.agents.config import TrainConfig
 
-    envs.make(args.scenario)
+    if args.resume:
+        run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet)
+    else:
+        fields = config_args.overrides(args, TrainConfig)
+        env_over = config_args.parse_assignments(args.env or [], envs.EnvConfig)
+        config = TrainConfig(**fields, env_overrides=tuple(sorted(env_over.items())))
+        envs.make(config.scenario, **env_over)  # fail on a bad env before compiling anything
+        run_dir = runner.train(config, args.out, progress=not args.quiet)
+    print(f"run folder: {run_dir}  (metrics.jsonl, tb/, checkpoints/, curves.png)")
+    print(f"evaluate:   aswarm eval --checkpoint {run_dir} --episodes 1000")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
+    from aswarm.agents import evaluate
+
+    result = evaluate.evaluate_checkpoint(args.checkpoint, scenario=args.scenario, episodes=args.episodes,
+                                          seed=args.seed, env_overrides=args.env or [])
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(evaluate.format_table(result))
     return 0
 
 
@@ -69,9 +92,28 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
     b.set_defaults(func=cmd_bench)
 
-    t = sub.add_parser("train", help="train a swarm policy")
-    t.add_argument("--scenario", default="race")
+    from aswarm import config_args
+    from aswarm.agents.config import METHODS, TrainConfig
+
+    t = sub.add_parser("train", help="train a swarm policy (MAPPO with attention-CBF by default)",
+                       description="Every TrainConfig field is a flag; env fields go through --env FIELD=VALUE. "
+                       f"Methods: {'; '.join(f'{k}: {v}' for k, v in METHODS.items())}.")
+    t.add_argument("--out", type=Path, default=None, help="run folder (default runs/SCENARIO-METHOD-TIME)")
+    t.add_argument("--resume", type=Path, default=None,
+                   help="continue the run in this folder from its latest checkpoint")
+    t.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    config_args.add_fields(t, TrainConfig, skip=("env_overrides",))
     t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval", help="evaluate a trained policy on unseen seeds")
+    e.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
+    e.add_argument("--scenario", default=None, help="default: the scenario it was trained on")
+    e.add_argument("--episodes", type=int, default=1000)
+    e.add_argument("--seed", type=int, default=10_000, help="evaluation seed (training seeds are small integers)")
+    e.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+    e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    e.set_defaults(func=cmd_eval)
     return p
 
 
@@ -79,9 +121,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except ValueError as e:  # config and input errors: one line, non-zero exit
+    except ValueError as e:  # config, input and checkpoint errors: one line, non-zero exit
         print(f"aswarm {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except RuntimeError as e:  # training diverged
+        print(f"aswarm {args.command}: error: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

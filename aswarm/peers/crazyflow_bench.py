@@ -40,9 +40,12 @@ def _import_crazyflow() -> tuple[Any, Any, Any, Any, Any]:
             import crazyflow.sim.functional as cf_functional
             import jax
             import jax.numpy as jnp
+            import mujoco
     except ImportError:
         print("crazyflow is not installed: pip install crazyflow", file=sys.stderr)
         sys.exit(1)
+    # MuJoCo's default warning handler appends to ./MUJOCO_LOG.TXT; keep the caller's cwd clean.
+    mujoco.set_mju_user_warning(lambda msg: print(f"MuJoCo warning: {msg}", file=sys.stderr))
     return crazyflow, cf_functional, jax, jnp, crazyflow.Control
 
 

@@ -1,0 +1,97 @@
+"""Typed training configuration; defaults from the paper's Table II unless a measurement says otherwise."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+METHODS = {
+    "attention_cbf": "the full method: attention-CBF penalties and CBF safety filter with learned gains",
+    "attention_penalty": "attention-CBF penalties, no safety filter",
+    "fixed_cbf": "CBF safety filter with a fixed gain (no attention), plain MAPPO objective",
+    "mappo_lagrangian": "MAPPO-Lagrangian: one learned scalar multiplier, no filter",
+    "mappo": "plain MAPPO: no cost, no filter",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    scenario: str = "race"
+    method: str = "attention_cbf"
+    seed: int = 0
+    total_steps: int = 30_000_000  # env steps (each moves every drone once)
+    num_envs: int = 1024
+    rollout_steps: int = 32
+    epochs: int = 4
+    minibatches: int = 4
+    # Table II.
+    actor_lr: float = 5e-4
+    critic_lr: float = 5e-3
+    cbf_lr: float = 1e-3
+    clip: float = 0.1
+    gae_lambda: float = 0.95
+    gamma: float = 0.95
+    cbf_coef: float = 0.1  # alpha, weight of the CBF loss
+    value_coef: float = 0.5
+    entropy_coef: float = 1e-3
+    max_grad_norm: float = 0.5
+    cost_limit: float = 0.02  # allowed expected discounted cost-to-go per drone
+    lagrange_init: float = 0.0  # mappo_lagrangian: initial multiplier
+    # Networks.
+    actor_hidden: tuple[int, ...] = (128, 128)
+    critic_hidden: tuple[int, ...] = (256, 256)
+    cbf_hidden: tuple[int, ...] = (64, 64)  # paper: (1024, 256)
+    cbf_embed: int = 8  # paper: 3
+    cbf_state_hidden: int = 64
+    penalty_max: float = 10.0
+    gain_min: float = 0.5  # 1/s, class-K gain range of the safety filter
+    gain_max: float = 10.0
+    fixed_gain: float = 2.0  # fixed_cbf
+    filter_margin: float = 0.05  # m, kept on top of the collision distance by the filter
+    # Host loop.
+    checkpoint_minutes: float = 5.0
+    updates_per_chunk: int = 10
+    env_overrides: tuple[tuple[str, object], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"invalid method={self.method!r}: allowed: {', '.join(METHODS)}")
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"invalid {f.name}={v!r}: must be a finite number")
+        for name in ("total_steps", "num_envs", "rollout_steps", "epochs", "minibatches", "updates_per_chunk",
+                     "cbf_embed", "cbf_state_hidden"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be > 0")
+        for name in ("actor_lr", "critic_lr", "cbf_lr", "clip", "max_grad_norm", "checkpoint_minutes"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be > 0")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be in (0, 1]")
+        if (self.num_envs * self.rollout_steps) % self.minibatches:
+            raise ValueError(f"invalid minibatches={self.minibatches}: must divide num_envs * rollout_steps = "
+                             f"{self.num_envs * self.rollout_steps}")
+        if not 0 < self.gain_min < self.gain_max:
+            raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_steps
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.total_steps // self.steps_per_update)
+
+    @property
+    def uses_filter(self) -> bool:
+        return self.method in ("attention_cbf", "fixed_cbf")
+
+    @property
+    def uses_attention(self) -> bool:
+        return self.method in ("attention_cbf", "attention_penalty")
+
+    @property
+    def uses_cost(self) -> bool:
+        return self.method in ("attention_cbf", "attention_penalty", "mappo_lagrangian")

@@ -1,0 +1,271 @@
+"""Centralized MAPPO with the attention-CBF network (Algorithm 1), as pure functions.
+
+``make_train(config)`` returns ``train(key) -> (TrainState, metrics)`` that runs
+the whole budget in one ``jit``; the host loop in ``runner.py`` instead calls
+``init`` and ``update_chunk`` so it can checkpoint, log and draw progress
+between chunks. Both produce the same numbers for the same key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training.acme import running_statistics
+from brax.training.distribution import NormalTanhDistribution
+from flax import struct
+
+from aswarm import envs
+from aswarm.agents import losses
+from aswarm.agents.config import TrainConfig
+from aswarm.agents.networks import Actor, AttentionCBF, CentralCritic, hazard_mask
+
+
+class Transition(NamedTuple):
+    obs: jax.Array  # [B, n, D] raw
+    final_obs: jax.Array  # [B, n, D] raw obs reached by the step, before any auto-reset
+    raw_action: jax.Array  # [B, n, 3] pre-tanh sample
+    log_prob: jax.Array  # [B, n]
+    reward: jax.Array  # [B, n]
+    cost: jax.Array  # [B, n]
+    done: jax.Array  # [B]
+    truncated: jax.Array  # [B]
+    intervened: jax.Array  # [B, n] the safety filter changed the command
+    correction: jax.Array  # [B, n] m/s, size of that change
+    episode: dict  # metrics summed over the episodes that ended, and their count
+
+
+@struct.dataclass
+class TrainState:
+    params: dict
+    opt_state: optax.OptState
+    obs_norm: running_statistics.RunningStatisticsState
+    env_state: envs.State
+    key: jax.Array
+    update: jax.Array  # [] int32, updates done
+    env_steps: jax.Array  # [] float32 (int32 would overflow past 2^31)
+
+
+@dataclasses.dataclass(frozen=True)
+class Agent:
+    """The networks and how to run them: shared by training, evaluation and export."""
+
+    config: TrainConfig
+    env: envs.SwarmEnv
+    actor: Actor
+    critic: CentralCritic
+    cost_critic: CentralCritic
+    cbf: AttentionCBF
+    dist: NormalTanhDistribution
+
+    @classmethod
+    def build(cls, config: TrainConfig, env: envs.SwarmEnv | None = None) -> Agent:
+        env = env or make_env(config)
+        n = env.num_agents
+        return cls(
+            config=config, env=env,
+            actor=Actor(hidden=config.actor_hidden),
+            critic=CentralCritic(num_agents=n, hidden=config.critic_hidden),
+            cost_critic=CentralCritic(num_agents=n, hidden=config.critic_hidden),
+            cbf=AttentionCBF(layout=env.obs_layout, embed=config.cbf_embed, hidden=config.cbf_hidden,
+                             state_hidden=config.cbf_state_hidden, penalty_max=config.penalty_max,
+                             gain_min=config.gain_min, gain_max=config.gain_max),
+            dist=NormalTanhDistribution(event_size=env.action_size),
+        )
+
+    def init_params(self, key: jax.Array) -> dict:
+        d = self.env.observation_size
+        n = self.env.num_agents
+        k = jax.random.split(key, 4)
+        obs = jnp.zeros((n, d))
+        return {
+            "actor": self.actor.init(k[0], obs),
+            "critic": self.critic.init(k[1], obs.reshape(-1)),
+            "cost_critic": self.cost_critic.init(k[2], obs.reshape(-1)),
+            "cbf": self.cbf.init(k[3], obs, jnp.ones((n, self.env.obs_layout.num_cylinders + n - 1), bool)),
+            "lagrange": jnp.asarray(self.config.lagrange_init, jnp.float32),
+        }
+
+    def normalize(self, obs_norm, obs: jax.Array) -> jax.Array:
+        return running_statistics.normalize(obs, obs_norm, max_abs_value=10.0)
+
+    def policy(self, params: dict, obs_norm, obs: jax.Array, key: jax.Array | None):
+        """Velocity commands [.., n, 3] before the filter; stochastic with ``key``, the mean without.
+
+        Returns (command, raw pre-tanh action, log-prob).
+        """
+        p = self.actor.apply(params["actor"], self.normalize(obs_norm, obs))
+        if key is None:
+            raw = self.dist.create_dist(p).loc
+        else:
+            raw = self.dist.sample_no_postprocessing(p, key)
+        cmd = self.dist.postprocess(raw) * self.env.config.max_speed
+        return cmd, raw, self.dist.log_prob(p, raw)
+
+    def cbf_params(self, params: dict, obs_norm, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """theta [.., n, 2] = (penalty, gain) and attention weights [.., n, M + n - 1]."""
+        return self.cbf.apply(params["cbf"], self.normalize(obs_norm, obs), hazard_mask(self.env.obs_layout, obs))
+
+    def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array):
+        """Apply the CBF safety filter (where the method has one) to commands [.., n, 3]."""
+        if not self.config.uses_filter:
+            zeros = jnp.zeros(cmd.shape[:-1])
+            return cmd, zeros.astype(bool), zeros
+        if self.config.uses_attention:
+            gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
+        else:
+            gain = jnp.full(cmd.shape[:-1], self.config.fixed_gain)
+        from aswarm.agents import cbf_filter
+
+        res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, self.env.config.max_speed,
+                                         self.env.config.cf.collision_radius, self.config.filter_margin)
+        return res.u, res.intervened, res.correction_norm
+
+    def act(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:
+        """Deterministic, filtered commands: what evaluation and export run."""
+        cmd, _, _ = self.policy(params, obs_norm, obs, None)
+        return self.safe_command(params, obs_norm, obs, cmd)[0]
+
+
+def make_env(config: TrainConfig) -> envs.SwarmEnv:
+    return envs.make(config.scenario, **dict(config.env_overrides))
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    def adam(lr):
+        return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
+
+    labels = {"actor": "actor", "critic": "critic", "cost_critic": "critic", "cbf": "cbf", "lagrange": "cbf"}
+    return optax.multi_transform(
+        {"actor": adam(config.actor_lr), "critic": adam(config.critic_lr), "cbf": adam(config.cbf_lr)},
+        lambda params: {k: jax.tree.map(lambda _, lab=labels[k]: lab, v) for k, v in params.items()},
+    )
+
+
+def make_train(config: TrainConfig):
+    """Returns ``(agent, init, update_chunk, train)``; the functions are pure and jittable.
+
+    ``init(key) -> TrainState``; ``update_chunk(state, n) -> (state, metrics [n])``;
+    ``train(key)`` runs ``config.num_updates`` updates from ``init``.
+    """
+    agent = Agent.build(config)
+    env = agent.env
+    wenv = envs.wrap_for_training(env, config.num_envs)
+    n, d = env.num_agents, env.observation_size
+    optimizer = make_optimizer(config)
+    b = config.num_envs
+
+    def init(key: jax.Array) -> TrainState:
+        k_param, k_env, k_run = jax.random.split(key, 3)
+        params = agent.init_params(k_param)
+        obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
+        return TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
+                          env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
+                          env_steps=jnp.zeros((), jnp.float32))
+
+    def rollout(ts: TrainState, key: jax.Array):
+        def step(env_state, k):
+            obs = env_state.obs
+            cmd, raw, logp = agent.policy(ts.params, ts.obs_norm, obs, k)
+            safe, intervened, corr = agent.safe_command(ts.params, ts.obs_norm, obs, cmd)
+            nxt = wenv.step(env_state, safe)
+            done = nxt.done
+            episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}
+            episode["episodes"] = jnp.sum(done)
+            return nxt, Transition(obs, nxt.info["final_obs"], raw, logp, nxt.reward, nxt.cost, done,
+                                   nxt.truncated, intervened, corr, episode)
+
+        return jax.lax.scan(step, ts.env_state, jax.random.split(key, config.rollout_steps))
+
+    def values(params, obs_norm, obs):
+        joint = agent.normalize(obs_norm, obs).reshape(*obs.shape[:-2], n * d)
+        return agent.critic.apply(params["critic"], joint), agent.cost_critic.apply(params["cost_critic"], joint)
+
+    def loss_fn(params, obs_norm, mb):
+        obs, raw, old_logp, adv, cost_adv, targets, cost_targets, excess, gain_tgt = mb
+        nobs = agent.normalize(obs_norm, obs)
+        p = agent.actor.apply(params["actor"], nobs)
+        logp = agent.dist.log_prob(p, raw)
+        entropy = jnp.mean(agent.dist.create_dist(p).entropy().sum(-1))
+        a = losses.normalize(adv)
+        aux = {}
+        if config.uses_attention:
+            theta, _ = agent.cbf.apply(params["cbf"], nobs, hazard_mask(env.obs_layout, obs))
+            penalty, gain = theta[..., 0], theta[..., 1]
+            a = losses.penalized_advantage(a, losses.normalize(cost_adv), penalty)
+            pen_loss = losses.penalty_loss(penalty, cost_adv, excess)
+            cbf_loss = jnp.mean((gain - gain_tgt) ** 2)
+            aux.update(penalty=jnp.mean(penalty), gain=jnp.mean(gain), cbf_loss=cbf_loss)
+        elif config.method == "mappo_lagrangian":
+            lam = jax.nn.softplus(params["lagrange"])
+            a = losses.penalized_advantage(a, losses.normalize(cost_adv), lam)
+            pen_loss, cbf_loss = losses.penalty_loss(lam, jnp.zeros(()), excess), jnp.zeros(())
+            aux.update(penalty=lam)
+        else:
+            pen_loss = cbf_loss = jnp.zeros(())
+        actor_loss = losses.ppo_clip_loss(logp, old_logp, a, config.clip)
+        v, vc = values(params, obs_norm, obs)
+        v_loss = losses.value_loss(v, targets)
+        vc_loss = losses.value_loss(vc, cost_targets) if config.uses_cost else jnp.zeros(())
+        total = (actor_loss + config.value_coef * (v_loss + vc_loss) + pen_loss + config.cbf_coef * cbf_loss
+                 - config.entropy_coef * entropy)
+        approx_kl = jnp.mean(old_logp - logp)
+        aux.update(actor_loss=actor_loss, value_loss=v_loss, cost_value_loss=vc_loss, entropy=entropy,
+                   approx_kl=approx_kl, loss=total)
+        return total, aux
+
+    def update(ts: TrainState, _):
+        key, k_roll, k_perm = jax.random.split(ts.key, 3)
+        env_state, tr = rollout(ts, k_roll)
+        v, vc = values(ts.params, ts.obs_norm, tr.obs)
+        nv, nvc = values(ts.params, ts.obs_norm, tr.final_obs)
+        adv, targets = losses.gae(tr.reward, v, nv, tr.done, tr.truncated, config.gamma, config.gae_lambda)
+        cadv, ctargets = losses.gae(tr.cost, vc, nvc, tr.done, tr.truncated, config.gamma, config.gae_lambda)
+        excess = jnp.mean(ctargets) - config.cost_limit
+        gain_tgt = losses.gain_target(ctargets, config.gain_min, config.gain_max)
+        flat = lambda x: x.reshape((config.rollout_steps * b,) + x.shape[2:])  # noqa: E731
+        data = (flat(tr.obs), flat(tr.raw_action), flat(tr.log_prob), flat(adv), flat(cadv), flat(targets),
+                flat(ctargets), excess, flat(gain_tgt))
+
+        def epoch(carry, k):
+            params, opt_state = carry
+            perm = jax.random.permutation(k, config.rollout_steps * b)
+            shuffled = [x if x.ndim == 0 else x[perm].reshape((config.minibatches, -1) + x.shape[1:]) for x in data]
+
+            def minibatch(c, i):
+                prm, ost = c
+                mb = [x if x.ndim == 0 else x[i] for x in shuffled]
+                (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(prm, ts.obs_norm, mb)
+                upd, ost = optimizer.update(grads, ost, prm)
+                aux["grad_norm"] = optax.global_norm(grads)
+                return (optax.apply_updates(prm, upd), ost), aux
+
+            return jax.lax.scan(minibatch, (params, opt_state), jnp.arange(config.minibatches))
+
+        (params, opt_state), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state),
+                                                jax.random.split(k_perm, config.epochs))
+        obs_norm = running_statistics.update(ts.obs_norm, flat(tr.obs).reshape(-1, d))
+        eps = jnp.maximum(tr.episode["episodes"].sum(), 1.0)
+        metrics = {f"episode/{k_}": v_.sum() / eps for k_, v_ in tr.episode.items() if k_ != "episodes"}
+        metrics["episodes"] = tr.episode["episodes"].sum()
+        metrics.update({f"train/{k_}": jnp.mean(v_) for k_, v_ in aux.items()})
+        metrics["train/explained_variance"] = 1.0 - jnp.var(targets - v) / jnp.maximum(jnp.var(targets), 1e-8)
+        metrics["train/step_reward"] = jnp.mean(tr.reward)
+        metrics["train/step_cost"] = jnp.mean(tr.cost)
+        metrics["safety/intervention_rate"] = jnp.mean(tr.intervened)
+        metrics["safety/mean_correction"] = jnp.sum(tr.correction) / jnp.maximum(jnp.sum(tr.intervened), 1.0)
+        metrics["train/cost_excess"] = excess
+        ts = ts.replace(params=params, opt_state=opt_state, obs_norm=obs_norm, env_state=env_state, key=key,
+                        update=ts.update + 1, env_steps=ts.env_steps + config.steps_per_update)
+        return ts, metrics
+
+    def update_chunk(ts: TrainState, num_updates: int):
+        return jax.lax.scan(update, ts, None, length=num_updates)
+
+    def train(key: jax.Array):
+        return update_chunk(init(key), config.num_updates)
+
+    return agent, init, update_chunk, train
