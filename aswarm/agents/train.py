@@ -240,7 +240,7 @@ def make_train(config: TrainConfig):
                 mb = [x if x.ndim == 0 else x[i] for x in shuffled]
                 (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(prm, ts.obs_norm, mb)
                 upd, ost = optimizer.update(grads, ost, prm)
-                aux["grad_norm"] = optax.global_norm(grads)
+                aux["grad_norm"] = optax.tree.norm(grads)
                 return (optax.apply_updates(prm, upd), ost), aux
 
             return jax.lax.scan(minibatch, (params, opt_state), jnp.arange(config.minibatches))

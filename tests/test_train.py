@@ -1,0 +1,112 @@
+"""Training: learning happens, checkpoints round-trip, resume reproduces, faults stop cleanly."""
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from aswarm import envs
+from aswarm.agents import checkpoint, runner
+from aswarm.agents.config import TrainConfig
+
+SMALL = dict(scenario="hover", num_envs=32, rollout_steps=8, minibatches=2, epochs=2, updates_per_chunk=2,
+             total_steps=32 * 8 * 4)
+
+
+def _restore(run_dir):
+    cfg = checkpoint.load_config(run_dir)
+    from aswarm.agents.train import make_train
+
+    _, init, _, _ = make_train(cfg)
+    like = jax.jit(init)(jax.random.PRNGKey(cfg.seed))
+    return checkpoint.restore(checkpoint.manager(run_dir), like)
+
+
+def test_hover_learns_from_scratch(tmp_path):
+    cfg = TrainConfig(scenario="hover", method="mappo", num_envs=128, rollout_steps=32, updates_per_chunk=10,
+                      total_steps=128 * 32 * 30)
+    run = runner.train(cfg, tmp_path / "run", progress=False)
+    rows = runner.read_metrics(run)
+    early = np.mean([r["episode/success"] for r in rows[:3]])
+    late = np.mean([r["episode/success"] for r in rows[-3:]])
+    assert early < 0.2 and late > 0.6, (early, late)
+    assert rows[-1]["train/explained_variance"] > rows[0]["train/explained_variance"]
+    assert (run / "curves.png").stat().st_size > 10_000
+    assert (run / "tb").is_dir() and json.loads((run / "config.json").read_text())["train"]["method"] == "mappo"
+
+
+def test_checkpoint_round_trip_and_resume_matches_uninterrupted(tmp_path):
+    cfg = TrainConfig(method="attention_penalty", **SMALL)
+    full = runner.train(cfg, tmp_path / "full", progress=False)
+    part = runner.train(cfg, tmp_path / "part", progress=False, max_updates=2)
+    a = _restore(part)
+    assert int(a.update) == 2
+    resumed = runner.train(None, part, resume=True, progress=False)
+    s_full, s_res = _restore(full), _restore(resumed)
+    assert int(s_full.update) == int(s_res.update) == 4
+    for x, y in zip(jax.tree.leaves((s_full.params, s_full.opt_state, s_full.obs_norm, s_full.key)),
+                    jax.tree.leaves((s_res.params, s_res.opt_state, s_res.obs_norm, s_res.key))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    rows_full = runner.read_metrics(full)
+    rows_res = runner.read_metrics(resumed)
+    assert [r["update"] for r in rows_res] == [1, 2, 3, 4]
+    assert rows_full[-1]["train/loss"] == rows_res[-1]["train/loss"]
+
+
+def test_existing_run_folder_is_not_overwritten(tmp_path):
+    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    runner.train(cfg, tmp_path / "r", progress=False)
+    with pytest.raises(ValueError, match="already holds checkpoints: use --resume"):
+        runner.train(cfg, tmp_path / "r", progress=False)
+
+
+def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch):
+    cfg = TrainConfig(method="mappo", checkpoint_minutes=1e-6, **SMALL)
+    real = runner.make_train
+
+    def poisoned(config):
+        agent, init, chunk, train = real(config)
+
+        def chunk_nan(ts, k):
+            ts, m = chunk(ts, k)
+            bad = ts.update > 2
+            params = jax.tree.map(lambda p: jax.numpy.where(bad, jax.numpy.nan, p), ts.params)
+            return ts.replace(params=params), m
+
+        return agent, init, chunk_nan, train
+
+    monkeypatch.setattr(runner, "make_train", poisoned)
+    with pytest.raises(runner.TrainingDiverged, match=r"NaN/Inf .* last good checkpoint \(update 2\)"):
+        runner.train(cfg, tmp_path / "nan", progress=False)
+    monkeypatch.setattr(runner, "make_train", real)
+    s = _restore(tmp_path / "nan")
+    assert int(s.update) == 2
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(s.params))
+
+
+def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
+    with pytest.raises(checkpoint.CheckpointError, match="not a run folder"):
+        checkpoint.load_config(tmp_path)
+    (tmp_path / "config.json").write_text("{not json")
+    with pytest.raises(checkpoint.CheckpointError, match="not a valid aswarm run config"):
+        checkpoint.load_config(tmp_path)
+    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    run = runner.train(cfg, tmp_path / "r", progress=False)
+    other = dataclasses.replace(cfg, actor_hidden=(16,))
+    runner.write_config(run, other, envs.make("hover").config)
+    with pytest.raises(checkpoint.CheckpointError, match="cannot be restored into this configuration"):
+        _restore(run)
+
+
+@pytest.mark.parametrize("bad,message", [
+    (dict(method="magic"), r"invalid method='magic': allowed: attention_cbf"),
+    (dict(gamma=1.5), r"invalid gamma=1.5: must be in \(0, 1\]"),
+    (dict(num_envs=0), r"invalid num_envs=0: must be > 0"),
+    (dict(actor_lr=float("nan")), r"invalid actor_lr=nan: must be a finite number"),
+    (dict(minibatches=7), r"invalid minibatches=7: must divide"),
+])
+def test_bad_train_config_is_a_clear_error(bad, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**bad)
