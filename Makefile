@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= race
 ARGS ?=
 
-.PHONY: install train test bench lint clean
+.PHONY: install train test bench bench-train lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/aswarm bench --peer-venv .venv-crazyflow $(ARGS)
+
+bench-train: $(STAMP)
+	$(VENV)/bin/aswarm bench --trainer $(ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check aswarm tests experiments

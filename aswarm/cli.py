@@ -40,7 +40,7 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from aswarm import bench
 
-    return bench.main(args)
+    return bench.main_trainer(args) if args.trainer else bench.main(args)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -90,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="virtualenv holding crazyflow, created on first use")
     b.add_argument("--no-peer", action="store_true", help="skip the crazyflow comparison")
     b.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
+    b.add_argument("--trainer", action="store_true", help="end-to-end training throughput instead")
     b.set_defaults(func=cmd_bench)
 
     from aswarm import config_args

@@ -19,7 +19,7 @@ from brax.training.distribution import NormalTanhDistribution
 from flax import struct
 
 from aswarm import envs
-from aswarm.agents import losses
+from aswarm.agents import cbf_filter, losses
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import Actor, AttentionCBF, CentralCritic, hazard_mask
 
@@ -118,8 +118,6 @@ class Agent:
             gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
         else:
             gain = jnp.full(cmd.shape[:-1], self.config.fixed_gain)
-        from aswarm.agents import cbf_filter
-
         res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, self.env.config.max_speed,
                                          self.env.config.cf.collision_radius, self.config.filter_margin)
         return res.u, res.intervened, res.correction_norm

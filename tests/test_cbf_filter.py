@@ -1,0 +1,313 @@
+"""CBF safety filter: QP against exact enumeration, pass-through, infeasibility, masks, barriers, batching."""
+
+from __future__ import annotations
+
+import itertools
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from aswarm.agents.cbf_filter import (
+    BarrierConstraints,
+    FilterResult,
+    barrier_constraints,
+    cylinder_constraints,
+    filter_velocity,
+    floor_constraint,
+    neighbour_constraints,
+)
+
+U_MAX = 2.0
+RHO = 1e6
+M_ROWS = 12
+
+
+def reference_qp(u_nom, A, b, mask, u_max=U_MAX, rho=RHO):
+    """Exact float64 solution by enumerating active sets (≤ 4 rows in R^4) and checking KKT.
+
+    Same QP on x = (u, √ρ s): min ½||x − x0||² s.t. G x ≥ h, so for an active set S the
+    candidate is x = x0 + G_Sᵀ ν with G_S x = h_S; it is optimal iff ν ≥ 0 and x is feasible.
+    """
+    A, b = np.asarray(A, float)[mask], np.asarray(b, float)[mask]
+    nrm = np.linalg.norm(A, axis=1)
+    A, b = A / nrm[:, None], b / nrm
+    eye = np.eye(3)
+    G = np.block([[A, np.full((len(b), 1), 1.0 / np.sqrt(rho))], [eye, np.zeros((3, 1))], [-eye, np.zeros((3, 1))]])
+    h = np.concatenate([b, np.full(6, -u_max)])
+    x0 = np.append(np.asarray(u_nom, float), 0.0)
+    if np.all(G @ x0 >= h):
+        return x0[:3], 0.0
+    for k in range(1, 5):
+        S = np.array(list(itertools.combinations(range(len(h)), k)))
+        N = G[S]  # [n_sets, k, 4]
+        gram = N @ N.transpose(0, 2, 1)
+        ok = np.abs(np.linalg.det(gram)) > 1e-10  # skip dependent rows (duplicates)
+        N, S, gram = N[ok], S[ok], gram[ok]
+        nu = np.linalg.solve(gram, (h[S] - N @ x0)[..., None])[..., 0]
+        x = x0 + np.einsum("skd,sk->sd", N, nu)
+        good = np.all(nu >= -1e-10, 1) & np.all(x @ G.T - h >= -1e-9, 1)
+        if good.any():
+            x = x[np.argmax(good)]
+            return x[:3], x[3] / np.sqrt(rho)
+    raise AssertionError("no KKT point found")
+
+
+def random_instance(rng, feasible: bool, m: int = M_ROWS):
+    A = rng.normal(size=(m, 3))
+    A /= np.linalg.norm(A, axis=1, keepdims=True)
+    if feasible:
+        b = A @ rng.uniform(-0.9 * U_MAX, 0.9 * U_MAX, 3) - rng.exponential(0.5, m)
+    else:
+        b = rng.uniform(0.5, 2.0, m)  # every row pushes outwards: no u satisfies them all
+    A[m - 2:] = A[:2]  # duplicated rows: degenerate active sets must not break the solver
+    b[m - 2:] = b[:2]
+    mask = rng.uniform(size=m) < 0.85
+    mask[:2] = True
+    return rng.uniform(-3.0, 3.0, 3), A, b, mask
+
+
+def stack(instances):
+    u, A, b, mask = (np.stack(x) for x in zip(*instances))
+    return jnp.asarray(u, jnp.float32), jnp.asarray(A, jnp.float32), jnp.asarray(b, jnp.float32), jnp.asarray(mask)
+
+
+batched_filter = jax.jit(jax.vmap(lambda u, A, b, mask: filter_velocity(u, A, b, mask, U_MAX)))
+# Eager calls dispatch every op of the unrolled solver one by one: jit even single problems.
+single_filter = jax.jit(filter_velocity, static_argnames=("max_iter",))
+
+
+@pytest.mark.parametrize("feasible", [True, False])
+def test_matches_reference_qp(feasible):
+    rng = np.random.default_rng(0 if feasible else 1)
+    instances = [random_instance(rng, feasible) for _ in range(250 if feasible else 100)]
+    res = batched_filter(*stack(instances))
+    chex.assert_shape(res.u, (len(instances), 3))
+    chex.assert_shape(res.active, (len(instances), M_ROWS))
+    u, slack = np.asarray(res.u, float), np.asarray(res.slack, float)
+    assert np.all(np.asarray(res.converged))
+    assert np.all(np.abs(u) <= U_MAX + 1e-6)
+    for k, (u_nom, A, b, mask) in enumerate(instances):
+        u_ref, s_ref = reference_qp(u_nom, A, b, mask)
+        np.testing.assert_allclose(u[k], u_ref, atol=1e-4)
+        np.testing.assert_allclose(slack[k], s_ref, atol=1e-5)
+        gaps = (A @ u[k] - b)[mask]
+        if feasible:
+            assert slack[k] < 1e-4
+            assert gaps.min() >= -1e-4  # every present row holds
+        else:
+            assert slack[k] > 0.1
+            assert gaps.min() >= -slack[k] - 1e-4  # rows hold once relaxed by the shared slack
+        active = np.asarray(res.active[k])
+        assert not np.any(active & ~mask)
+        np.testing.assert_allclose(gaps[active[mask]], -slack[k], atol=1e-4)  # binding rows are tight
+
+
+def test_unchanged_when_already_safe():
+    rng = np.random.default_rng(2)
+    u_nom = rng.uniform(-1.5, 1.5, (64, 3))
+    A = rng.normal(size=(64, M_ROWS, 3))
+    b = np.einsum("bmk,bk->bm", A, u_nom) - rng.uniform(0.0, 1.0, (64, M_ROWS))  # u_nom satisfies all rows
+    mask = rng.uniform(size=(64, M_ROWS)) < 0.8
+    u_nom32 = jnp.asarray(u_nom, jnp.float32)
+    res = batched_filter(u_nom32, jnp.asarray(A, jnp.float32), jnp.asarray(b, jnp.float32), jnp.asarray(mask))
+    np.testing.assert_array_equal(np.asarray(res.u), np.asarray(u_nom32))
+    assert not np.any(np.asarray(res.intervened))
+    assert not np.any(np.asarray(res.active))
+    np.testing.assert_array_equal(np.asarray(res.slack), 0.0)
+    np.testing.assert_array_equal(np.asarray(res.correction_norm), 0.0)
+
+
+def test_box_only_clips():
+    u_nom = jnp.array([3.0, -0.5, -7.0])
+    res = single_filter(u_nom, jnp.zeros((1, 3)), jnp.zeros(1), jnp.zeros(1, bool), jnp.array([2.0, 2.0, 1.0]))
+    np.testing.assert_allclose(res.u, [2.0, -0.5, -1.0], atol=1e-6)
+    assert bool(res.intervened) and float(res.slack) == 0.0
+    np.testing.assert_allclose(res.correction_norm, np.hypot(1.0, 6.0), rtol=1e-6)
+
+
+def test_infeasible_instance_is_finite_and_bounded():
+    # Two opposite rows demanding u_x ≥ 1 and u_x ≤ −1, and a third out of the box's reach (padded
+    # with absent rows to reuse the compiled batch).
+    A = np.zeros((1, M_ROWS, 3), np.float32)
+    A[0, :3] = [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    b = np.zeros((1, M_ROWS), np.float32)
+    b[0, :3] = [1.0, 1.0, 5.0]
+    res = batched_filter(jnp.array([[0.3, 0.0, 0.5]]), jnp.asarray(A), jnp.asarray(b), jnp.arange(M_ROWS)[None] < 3)
+    assert np.all(np.isfinite(np.asarray(res.u))) and bool(res.converged[0])
+    assert np.all(np.abs(np.asarray(res.u)) <= 2.0 + 1e-6)
+    # The shared slack equalises the worst violation: u_y hits the bound, s = 5 − 2 = 3, u_x anywhere in [−2, 2]
+    # → the nearest, 0.3; u_z untouched.
+    np.testing.assert_allclose(res.u[0], [0.3, 2.0, 0.5], atol=1e-4)
+    np.testing.assert_allclose(res.slack[0], 3.0, atol=1e-4)
+
+
+def test_masked_and_degenerate_rows_are_ignored():
+    rng = np.random.default_rng(3)
+    instances = [random_instance(rng, feasible=True) for _ in range(32)]
+    u, A, b, mask = stack(instances)
+    base = batched_filter(u, A, b, mask)
+    # Masked rows get wild contents.
+    A2 = jnp.where(mask[..., None], A, 10.0 * jnp.asarray(rng.normal(size=A.shape), jnp.float32))
+    b2 = jnp.where(mask, b, 50.0)
+    # The last row duplicates row 1, so replacing it changes nothing, unless the replacement counts:
+    # a present row with a ≈ 0 cannot be influenced by u and must be dropped, not paid for with slack.
+    A2 = A2.at[:, -1].set(0.0)
+    b2 = b2.at[:, -1].set(3.0)
+    mask2 = mask.at[:, -1].set(True)
+    res = batched_filter(u, A2, b2, mask2)
+    np.testing.assert_allclose(res.u, base.u, atol=1e-6)
+    np.testing.assert_allclose(res.slack, base.slack, atol=1e-6)
+    assert not np.any(np.asarray(res.active[:, -1]))
+
+
+def test_rows_are_scale_invariant():
+    rng = np.random.default_rng(4)
+    u, A, b, mask = stack([random_instance(rng, feasible=False) for _ in range(16)])
+    scale = jnp.asarray(rng.uniform(0.1, 10.0, b.shape), jnp.float32)
+    res = batched_filter(u, A * scale[..., None], b * scale, mask)
+    base = batched_filter(u, A, b, mask)
+    np.testing.assert_allclose(res.u, base.u, atol=1e-4)
+    np.testing.assert_allclose(res.slack, base.slack, atol=1e-4)
+
+
+def test_out_of_budget_is_reported_and_flyable():
+    rng = np.random.default_rng(5)
+    u, A, b, mask = stack([random_instance(rng, feasible=False) for _ in range(16)])
+    res = jax.jit(jax.vmap(lambda *a: filter_velocity(*a, U_MAX, max_iter=1)))(u, A, b, mask)
+    assert not np.all(np.asarray(res.converged))
+    assert np.all(np.isfinite(np.asarray(res.u))) and np.all(np.abs(np.asarray(res.u)) <= U_MAX)
+
+
+# ---------------------------------------------------------------- barriers
+def test_cylinder_row_hand_derived():
+    # Drone 1 m (surface gap minus margin) from a cylinder that moves straight at it at v = 0.5 m/s.
+    R, r, margin, gamma, v = 0.2, 0.05, 0.05, 0.2, 0.5
+    pos = jnp.array([1.3, 0.0, 1.0])
+    con = cylinder_constraints(pos, jnp.zeros((1, 2)), jnp.array([R]), jnp.array([[v, 0.0]]), jnp.ones(1, bool),
+                               jnp.array([gamma]), drone_radius=r, margin=margin)
+    np.testing.assert_allclose(con.h, [1.0], atol=1e-6)  # 1.3 − (0.2 + 0.05 + 0.05)
+    np.testing.assert_allclose(con.A, [[1.0, 0.0, 0.0]], atol=1e-6)
+    # ḣ = u_x − v ≥ −γ h: the drone must retreat at ≥ v − γ h = 0.3 m/s (closing speed ≤ γ h/|∇h|).
+    np.testing.assert_allclose(con.b, [v - gamma * 1.0], atol=1e-6)
+    res = single_filter(jnp.array([-1.0, 0.4, 0.0]), con.A, con.b, con.mask, 2.0)
+    np.testing.assert_allclose(res.u, [0.3, 0.4, 0.0], atol=1e-5)
+    # Static cylinder, γ = 2: approach speed capped at γ h = 2 m/s.
+    con = cylinder_constraints(pos, jnp.zeros((1, 2)), jnp.array([R]), jnp.zeros((1, 2)), jnp.ones(1, bool),
+                               2.0, drone_radius=r, margin=margin)
+    res = single_filter(jnp.array([-3.0, 0.0, 0.0]), con.A, con.b, con.mask, 5.0)
+    np.testing.assert_allclose(res.u, [-2.0, 0.0, 0.0], atol=1e-5)
+
+
+def test_neighbour_rows_split_the_pair_condition():
+    rng = np.random.default_rng(6)
+    p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
+    v_i, v_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
+    gamma, r, margin = 1.5, 0.06, 0.1
+    for w in (0.5, 0.3):
+        ci = neighbour_constraints(p_i, v_i, p_k[None], v_k[None], jnp.ones(1, bool), gamma, drone_radius=r,
+                                   margin=margin, share=w)
+        ck = neighbour_constraints(p_k, v_k, p_i[None], v_i[None], jnp.ones(1, bool), gamma, drone_radius=r,
+                                   margin=margin, share=1.0 - w)
+        h = float(jnp.linalg.norm(p_i - p_k)) - (2 * r + margin)
+        np.testing.assert_allclose(ci.h, [h], atol=1e-5)
+        np.testing.assert_allclose(ci.A, -ck.A, atol=1e-6)
+        # n·u_i ≥ b_i and −n·u_k ≥ b_k add up to n·(u_i − u_k) ≥ −γ h, whatever the velocities.
+        np.testing.assert_allclose(ci.b + ck.b, [-gamma * h], atol=1e-5)
+    # Neither moving, share 1/2: the classic n·u ≥ −γh/2.
+    ci = neighbour_constraints(p_i, jnp.zeros(3), p_k[None], jnp.zeros((1, 3)), jnp.ones(1, bool), gamma,
+                               drone_radius=r, margin=margin)
+    np.testing.assert_allclose(ci.b, [-gamma * h / 2], atol=1e-5)
+
+
+def test_floor_row():
+    con = floor_constraint(jnp.array([0.0, 0.0, 0.5]), jnp.array([1.0]), z_min=0.1)
+    np.testing.assert_allclose(con.h, [0.4], atol=1e-6)
+    res = single_filter(jnp.array([0.0, 0.0, -1.0]), con.A, con.b, con.mask, 2.0)
+    np.testing.assert_allclose(res.u, [0.0, 0.0, -0.4], atol=1e-5)  # descend at most γ h
+
+
+def _scene(key, M=5, K=3):
+    ks = jax.random.split(key, 8)
+    return dict(
+        pos=jnp.array([0.0, 0.0, 1.0]) + 0.3 * jax.random.normal(ks[0], (3,)),
+        vel=jax.random.normal(ks[1], (3,)),
+        cyl_center=jax.random.uniform(ks[2], (M, 2), minval=-1.0, maxval=1.0),
+        cyl_radius=jnp.full((M,), 0.15),
+        cyl_vel=0.5 * jax.random.normal(ks[3], (M, 2)),
+        cyl_present=jnp.arange(M) < M - 1,
+        nbr_pos=jnp.array([0.0, 0.0, 1.0]) + jax.random.uniform(ks[4], (K, 3), minval=-1.0, maxval=1.0),
+        nbr_vel=jax.random.normal(ks[5], (K, 3)),
+        nbr_present=jnp.ones(K, bool),
+        gamma=jax.random.uniform(ks[6], (M + K + 1,), minval=0.5, maxval=3.0),
+    )
+
+
+def _build(s):
+    return barrier_constraints(**s, drone_radius=0.06, margin=0.1, floor_z=0.0)
+
+
+def test_barrier_layout_and_masks():
+    s = _scene(jax.random.PRNGKey(0))
+    con = jax.jit(_build)(s)
+    assert isinstance(con, BarrierConstraints)
+    chex.assert_shape([con.A, con.b, con.mask, con.h], [(9, 3), (9,), (9,), (9,)])
+    np.testing.assert_array_equal(con.mask, [True] * 4 + [False] + [True] * 3 + [True])
+    np.testing.assert_allclose(jnp.linalg.norm(con.A, axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(con.A[:5, 2], 0.0)  # cylinders: horizontal normals
+    np.testing.assert_allclose(con.h[-1], s["pos"][2] - 0.16, atol=1e-6)  # floor: z − (r + margin)
+    # The same rows from the parts, in the documented order.
+    cyl = cylinder_constraints(s["pos"], s["cyl_center"], s["cyl_radius"], s["cyl_vel"], s["cyl_present"],
+                               s["gamma"][:5], drone_radius=0.06, margin=0.1)
+    np.testing.assert_allclose(con.b[:5], cyl.b, atol=1e-6)
+
+
+def test_jit_vmap_matches_single_calls_and_gradients_are_finite():
+    keys = jax.random.split(jax.random.PRNGKey(1), 6).reshape(2, 3, 2)
+    scenes = jax.vmap(jax.vmap(_scene))(keys)
+    u_nom = 1.5 * jax.random.normal(jax.random.PRNGKey(2), (2, 3, 3))
+
+    def step(s, u):
+        con = _build(s)
+        return filter_velocity(u, con.A, con.b, con.mask, U_MAX)
+
+    batched = jax.jit(jax.vmap(jax.vmap(step)))(scenes, u_nom)
+    assert isinstance(batched, FilterResult)
+    chex.assert_shape([batched.u, batched.slack, batched.intervened, batched.correction_norm, batched.active],
+                      [(2, 3, 3), (2, 3), (2, 3), (2, 3), (2, 3, 9)])
+    chex.assert_tree_all_finite(batched.u)
+    single_step = jax.jit(step)
+    for i in range(2):
+        for j in range(3):
+            single = single_step(jax.tree.map(lambda x, i=i, j=j: x[i, j], scenes), u_nom[i, j])
+            np.testing.assert_allclose(batched.u[i, j], single.u, atol=1e-6)
+            np.testing.assert_allclose(batched.slack[i, j], single.slack, atol=1e-6)
+            np.testing.assert_array_equal(batched.active[i, j], single.active)
+
+    # Gradients w.r.t. the gains, the positions and the command stay finite (the coincident
+    # neighbour makes a zero-length normal).
+    s = jax.tree.map(lambda x: x[0, 0], scenes)
+    s["nbr_pos"] = s["nbr_pos"].at[0].set(s["pos"])
+
+    def loss(gamma, pos, u):
+        con = _build({**s, "gamma": gamma, "pos": pos})
+        res = filter_velocity(u, con.A, con.b, con.mask, U_MAX)
+        return jnp.sum(res.u) + res.slack + res.correction_norm
+
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(s["gamma"], s["pos"], u_nom[0, 0])
+    chex.assert_tree_all_finite(grads)
+
+
+def test_gradient_matches_active_set_sensitivity():
+    # One binding unit row a: u = u_nom + (b − a·u_nom) a, so ∂u/∂u_nom = I − a aᵀ and ∂u/∂b = a.
+    a = jnp.array([0.6, 0.0, 0.8])
+    u_nom = jnp.array([-0.5, 0.3, -0.2])
+
+    def f(u, b):
+        return filter_velocity(u, a[None], b[None], jnp.ones(1, bool), 2.0).u
+
+    jac_u, jac_b = jax.jit(jax.jacobian(f, argnums=(0, 1)))(u_nom, jnp.asarray(0.5))
+    np.testing.assert_allclose(jac_u, np.eye(3) - np.outer(a, a), atol=1e-5)
+    np.testing.assert_allclose(jac_b, a, atol=1e-5)
