@@ -261,7 +261,7 @@ def time_trainer(config, updates: int = 3) -> dict:
     ts = jax.jit(init)(jax.random.PRNGKey(0))
     fn = jax.jit(chunk, static_argnums=1)
     t0 = time.perf_counter()
-    ts, _ = fn(ts, 1)
+    ts, _ = fn(ts, updates)  # compiles; a second call would recompile if the state's types drifted
     jax.block_until_ready(ts)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()

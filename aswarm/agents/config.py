@@ -19,11 +19,11 @@ class TrainConfig:
     scenario: str = "race"
     method: str = "attention_cbf"
     seed: int = 0
-    total_steps: int = 30_000_000  # env steps (each moves every drone once)
+    total_steps: int = 15_000_000  # env steps (each moves every drone once): ~30 min on 2 CPU cores
     num_envs: int = 1024
     rollout_steps: int = 32
-    epochs: int = 4
-    minibatches: int = 4
+    epochs: int = 2  # 4 x 4 ran at 0.52x the throughput (BENCHMARKS.md)
+    minibatches: int = 2
     # Table II.
     actor_lr: float = 5e-4
     critic_lr: float = 5e-3
@@ -38,8 +38,8 @@ class TrainConfig:
     cost_limit: float = 0.02  # allowed expected discounted cost-to-go per drone
     lagrange_init: float = 0.0  # mappo_lagrangian: initial multiplier
     # Networks.
-    actor_hidden: tuple[int, ...] = (128, 128)
-    critic_hidden: tuple[int, ...] = (256, 256)
+    actor_hidden: tuple[int, ...] = (64, 64)
+    critic_hidden: tuple[int, ...] = (128, 128)
     cbf_hidden: tuple[int, ...] = (64, 64)  # paper: (1024, 256)
     cbf_embed: int = 8  # paper: 3
     cbf_state_hidden: int = 64

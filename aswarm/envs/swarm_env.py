@@ -163,7 +163,7 @@ class SwarmEnv:
         zeros = jnp.zeros(n)
         tracker = Tracker(
             target=jnp.zeros(n, jnp.int32), finished=jnp.zeros(n, bool), collided=jnp.zeros(n, bool),
-            collision_kind=jnp.zeros(n, jnp.int32), min_clearance=jnp.full(n, col.FAR),
+            collision_kind=jnp.zeros(n, jnp.int32), min_clearance=jnp.full(n, col.FAR, jnp.float32),
             separation_sum=zeros, speed_sum=zeros, finish_time=zeros, episode_return=zeros,
             steps=jnp.zeros((), jnp.int32),
         )
