@@ -6,15 +6,16 @@ import pytest
 
 from aswarm import envs
 from aswarm.agents import cbf_filter
+from aswarm.agents.config import TrainConfig
 
 MARGIN = 0.05
 
 
-def _run(env, state, command, use_filter, steps=150):
+def _run(env, state, command, use_filter, steps=150, gain=2.0, margin=MARGIN):
     step = jax.jit(env.step)
-    filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], 2.0),
+    filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], gain),
                                                            env.config.max_speed, env.config.cf.collision_radius,
-                                                           MARGIN))
+                                                           margin))
     for _ in range(steps):
         u = filt(state.obs, command).u if use_filter else command
         state = step(state, u)
@@ -52,3 +53,15 @@ def test_descending_into_the_floor_is_stopped():
     assert not bool(s.tracker.collided[0])
     assert not bool(s.tracker.finished[0])  # still flying, not a goal reached on the way down
     assert float(s.data.qpos[2]) > env.config.cf.collision_radius
+
+
+def test_largest_default_gain_is_safe_at_full_speed():
+    """The gain range is bounded by what the controller's lag allows: full speed, off-centre, gain_max."""
+    cfg = TrainConfig()
+    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    s = env.reset(jax.random.PRNGKey(0))
+    p = s.layout.start_pos[0]
+    s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))
+    s = _run(env, s, jnp.array([[env.config.max_speed, 0.0, 0.0]]), True, gain=cfg.gain_max,
+             margin=cfg.filter_margin)
+    assert not bool(s.tracker.collided[0])

@@ -69,9 +69,9 @@ class AttentionCBF(nn.Module):
     hidden: Sequence[int] = (64, 64)  # f_CBF (paper: 1024, 256)
     state_hidden: int = 64
     activation: str = "gelu"
-    penalty_max: float = 10.0
-    gain_min: float = 0.5
-    gain_max: float = 10.0
+    penalty_max: float = 2.0
+    gain_min: float = 0.3
+    gain_max: float = 2.0
 
     @nn.compact
     def __call__(self, obs: jax.Array, hazard_mask: jax.Array) -> tuple[jax.Array, jax.Array]:

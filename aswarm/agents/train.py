@@ -188,18 +188,20 @@ def make_train(config: TrainConfig):
         p = agent.actor.apply(params["actor"], nobs)
         logp = agent.dist.log_prob(p, raw)
         entropy = jnp.mean(agent.dist.create_dist(p).entropy().sum(-1))
+        # Reward advantages are normalized; cost advantages only centred: costs are mostly zero, and
+        # scaling them to unit variance blew their noise up to the size of the reward signal.
         a = losses.normalize(adv)
         aux = {}
         if config.uses_attention:
             theta, _ = agent.cbf.apply(params["cbf"], nobs, hazard_mask(env.obs_layout, obs))
             penalty, gain = theta[..., 0], theta[..., 1]
-            a = losses.penalized_advantage(a, losses.normalize(cost_adv), penalty)
+            a = losses.penalized_advantage(a, cost_adv - jnp.mean(cost_adv), penalty)
             pen_loss = losses.penalty_loss(penalty, cost_adv, excess)
             cbf_loss = jnp.mean((gain - gain_tgt) ** 2)
             aux.update(penalty=jnp.mean(penalty), gain=jnp.mean(gain), cbf_loss=cbf_loss)
         elif config.method == "mappo_lagrangian":
             lam = jax.nn.softplus(params["lagrange"])
-            a = losses.penalized_advantage(a, losses.normalize(cost_adv), lam)
+            a = losses.penalized_advantage(a, cost_adv - jnp.mean(cost_adv), lam)
             pen_loss, cbf_loss = losses.penalty_loss(lam, jnp.zeros(()), excess), jnp.zeros(())
             aux.update(penalty=lam)
         else:

@@ -28,7 +28,7 @@ class EnvConfig:
     gate_half_opening: float = 0.3
     gate_bar: float = 0.05
     obstacle_radius: float = 0.15
-    obstacle_height: float = 2.5
+    obstacle_height: float = 3.0  # up to the ceiling: no way over the top
     obstacle_spacing: float = 1.5  # between obstacle slots along the track / grid
     obstacle_lateral: float = 0.6  # random offset of a static obstacle from the racing line
     gate_clearance: float = 1.2  # no obstacle slot closer than this (along the track) to a gate or the start
