@@ -178,3 +178,19 @@ def test_bad_actions_are_clear_errors(race):
     # Inside jit a NaN cannot raise: it becomes a hover command, never a NaN state.
     out = jax.jit(race.step)(s, jnp.full((4, 3), jnp.nan))
     assert np.isfinite(np.asarray(out.obs)).all()
+
+
+def test_scene_model_holds_obstacles_and_gates_as_mocap_bodies():
+    import mujoco
+
+    from aswarm.envs import scene
+
+    cfg = envs.make("race").config
+    m = scene.build_model(cfg.num_agents, cfg.sim_freq, cfg.cf, physics_only=False,
+                          num_cylinders=cfg.num_cylinders, num_gates=cfg.num_gates)
+    assert m.nmocap == cfg.num_cylinders + cfg.num_gates
+    physics = scene.build_model(cfg.num_agents, cfg.sim_freq, cfg.cf, physics_only=True)
+    assert physics.nmocap == 0 and physics.nv == m.nv == 6 * cfg.num_agents
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    assert np.isfinite(d.xpos).all()
