@@ -110,3 +110,28 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
 def test_bad_train_config_is_a_clear_error(bad, message):
     with pytest.raises(ValueError, match=message):
         TrainConfig(**bad)
+
+
+def test_eval_errors_are_clear(tmp_path):
+    from aswarm.agents import evaluate
+
+    with pytest.raises(checkpoint.CheckpointError, match="does not exist"):
+        evaluate.evaluate_checkpoint(tmp_path / "missing")
+    with pytest.raises(ValueError, match="invalid episodes=0"):
+        evaluate.evaluate_checkpoint(tmp_path, episodes=0)
+    if not evaluate.PRETRAINED.exists():
+        with pytest.raises(checkpoint.CheckpointError, match="no pretrained policy ships yet"):
+            evaluate.evaluate_checkpoint("pretrained")
+
+
+def test_cli_reports_bad_values_in_one_line(capsys):
+    from aswarm import cli
+
+    assert cli.main(["train", "--scenario", "nowhere"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["aswarm train: error: unknown scenario 'nowhere': allowed: hover, obstacles, race, dynamic, lab"]
+    assert cli.main(["train", "--env", "num_agents=0"]) == 2
+    assert "invalid num_agents=0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "--gamma", "abc"])
+    assert e.value.code == 2 and "invalid gamma='abc': allowed: a number" in capsys.readouterr().err

@@ -63,6 +63,9 @@ def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episode
 def load(checkpoint_dir: str | Path):
     """(config, {params, obs_norm, update}) of a run folder or 'pretrained'."""
     run_dir = PRETRAINED if str(checkpoint_dir) == "pretrained" else Path(checkpoint_dir)
+    if run_dir == PRETRAINED and not run_dir.exists():
+        raise checkpoint.CheckpointError("no pretrained policy ships yet (the race does not train to a useful "
+                                         "policy yet, see README): give a run folder from `aswarm train`")
     if not run_dir.exists():
         raise checkpoint.CheckpointError(f"checkpoint {checkpoint_dir!s} does not exist: give a run folder or "
                                          "'pretrained'")
