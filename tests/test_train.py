@@ -37,6 +37,19 @@ def test_hover_learns_from_scratch(tmp_path):
     assert (run / "tb").is_dir() and json.loads((run / "config.json").read_text())["train"]["method"] == "mappo"
 
 
+def test_eval_json_is_the_only_stdout(tmp_path, capsys):
+    from aswarm import cli
+
+    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    run = runner.train(cfg, tmp_path / "r", progress=False)
+    capsys.readouterr()
+    assert cli.main(["eval", "--checkpoint", str(run), "--episodes", "8", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["episodes"] == 8 and 0.0 <= out["success_rate"] <= 1.0
+    lo, hi = out["success_ci95"]
+    assert lo <= out["success_rate"] <= hi
+
+
 def test_checkpoint_round_trip_and_resume_matches_uninterrupted(tmp_path):
     cfg = TrainConfig(method="attention_penalty", **SMALL)
     full = runner.train(cfg, tmp_path / "full", progress=False)
