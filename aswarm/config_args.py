@@ -51,20 +51,13 @@ def field_types(cls) -> dict:
 
 def add_fields(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = ()) -> None:
     """Add ``--field-name VALUE`` for every simple field of ``cls`` (defaults None = keep the config's)."""
+    defaults = cls()
     for name, kind in field_types(cls).items():
         if name in skip or not (kind in (bool, int, float, str) or typing.get_origin(kind) is tuple):
             continue
-        default = getattr(cls(), name) if _constructible(cls) else None
+        default = getattr(defaults, name)
         parser.add_argument(f"--{name.replace('_', '-')}", dest=name, default=None, metavar=kind_name(kind),
                             type=lambda t, n=name, k=kind: _parse(n, k, t), help=f"default {default!r}")
-
-
-def _constructible(cls) -> bool:
-    try:
-        cls()
-        return True
-    except Exception:
-        return False
 
 
 def kind_name(kind) -> str:
