@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= race
 ARGS ?=
 
-.PHONY: install train test bench bench-train lint clean
+.PHONY: install train test bench bench-train bench-flight paper-table lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -28,9 +28,22 @@ bench: $(STAMP)
 bench-train: $(STAMP)
 	$(VENV)/bin/aswarm bench --trainer $(ARGS)
 
+bench-flight: $(STAMP)
+	$(PY) -m aswarm.flight.bench --out BENCHMARKS.md $(ARGS)
+
+paper-table: $(STAMP)
+	$(PY) experiments/paper_table.py $(ARGS)
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff check aswarm tests experiments
 
 clean:
 	rm -rf $(VENV) .venv-crazyflow .pytest_cache .ruff_cache *.egg-info build
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+sweep: $(STAMP)
+	$(VENV)/bin/aswarm sweep $(SWEEP) $(ARGS)
+
+# make sweep SWEEP=sweeps/race_lr.toml: a hyperparameter sweep in one program (re-run to resume)
+SWEEP ?= sweeps/race_lr.toml
+.PHONY: sweep

@@ -66,12 +66,113 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     from aswarm.agents import evaluate
 
+    out_dir = evaluate.report_dir(args.checkpoint, args.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"invalid --out {str(out_dir)!r}: is a file; allowed: a folder")
     result = evaluate.evaluate_checkpoint(args.checkpoint, scenario=args.scenario, episodes=args.episodes,
                                           seed=args.seed, env_overrides=args.env or [])
+    json_path, csv_path = evaluate.write_report(result, out_dir)
     if args.json:
         print(json.dumps(result))
     else:
         print(evaluate.format_table(result))
+    # With --json, stdout holds the JSON object alone.
+    print(f"wrote {json_path} and {csv_path}", file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from aswarm import export
+
+    out = export.export(args.checkpoint, args.out, force=args.force)
+    print(f"bundle: {out}  (policy.npz, manifest.json)")
+    print(f"check it in the simulator: aswarm sitl --bundle {out} --episodes 200")
+    return 0
+
+
+def cmd_sitl(args: argparse.Namespace) -> int:
+    import json
+
+    from aswarm import sitl
+
+    result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
+                           noise=args.noise, latency=args.latency, env_overrides=args.env or [],
+                           progress=not args.json)
+    print(json.dumps(result) if args.json else sitl.format_table(result))
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from aswarm.agents import sharding
+
+    if args.coordinator is not None:  # several hosts: join before anything touches a device
+        sharding.initialize(args.coordinator, args.num_processes, args.process_id)
+    from aswarm import sweep
+
+    spec = sweep.load(args.file)  # a bad file fails here, before anything compiles
+    if args.bench:
+        print(sweep.format_bench(sweep.bench_sweep(spec)))
+        return 0
+    out = args.out or Path("runs") / f"sweep-{spec.name}"
+    results = sweep.run(spec, out, progress=not args.quiet)
+    print(sweep.format_table(results))
+    print(f"sweep folder: {out}  (results.csv, results.json, report.md, curves.png, trials/*/)")
+    best = results["configs"][0]
+    print(f"evaluate the best: aswarm eval --checkpoint {out / 'trials' / next(iter(best['trials']))}")
+    return 0
+
+
+def cmd_fly(args: argparse.Namespace) -> int:
+    from aswarm.flight import fly
+
+    return fly.run(args)
+
+
+def _record_episode(args: argparse.Namespace, need_attention: bool = False):
+    """(agent's env, recorded Episode) of episode ``--episode-index`` of ``--seed``, as ``aswarm eval`` draws it."""
+    import jax
+
+    from aswarm import plots
+    from aswarm.agents import evaluate
+
+    if args.episode_index < 0:
+        raise ValueError(f"invalid --episode-index {args.episode_index}: must be >= 0")
+    config, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env or [])
+    if need_attention and not config.uses_attention:
+        raise ValueError(f"method {config.method!r} has no attention network: --attention needs a checkpoint of "
+                         "attention_cbf or attention_penalty")
+    if not 0 <= getattr(args, "drone", 0) < agent.env.num_agents:
+        raise ValueError(f"invalid --drone {args.drone}: allowed: 0 to {agent.env.num_agents - 1}")
+    # split(key, N)[i] does not depend on N, so this is episode i of `aswarm eval --seed K`.
+    key = jax.random.split(jax.random.PRNGKey(args.seed), args.episode_index + 1)[args.episode_index]
+    return agent.env, plots.record_episode(agent, restored["params"], restored["obs_norm"], key)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from aswarm import plots
+
+    plots.check_output(args.out)
+    _, ep = _record_episode(args, need_attention=args.attention)
+    if args.attention:
+        path = plots.plot_attention(ep, args.out, drone=args.drone)
+    else:
+        path = plots.plot_trajectories(ep, args.out, three_d=not args.no_3d)
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from aswarm import render
+
+    render.choose_output(args.out, True, True)  # bad options fail before anything compiles
+    render.check_options(args.fps, args.width, args.height, args.camera)
+    env, ep = _record_episode(args)
+    path, fmt, backend = render.render_episode(ep, env.config, args.out, fps=args.fps, width=args.width,
+                                               height=args.height, camera=args.camera)
+    how = {"mp4": "mp4 via imageio-ffmpeg",
+           "gif": "GIF via Pillow" + (": imageio-ffmpeg is not installed" if args.out.suffix.lower() == ".mp4" else ""),
+           "png": "PNG frames: neither imageio-ffmpeg nor Pillow is installed"}[fmt]
+    print(f"wrote {path} ({how}; MUJOCO_GL={backend})")
     return 0
 
 
@@ -114,7 +215,75 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=10_000, help="evaluation seed (training seeds are small integers)")
     e.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    e.add_argument("--out", type=Path, default=None,
+                   help="folder for eval_SCENARIO.json and .csv (default: the run folder; runs/eval for pretrained)")
     e.set_defaults(func=cmd_eval)
+
+    x = sub.add_parser("export", help="write a policy bundle (numpy weights + manifest) for the flight side")
+    x.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
+    x.add_argument("--out", required=True, type=Path, help="bundle folder to create")
+    x.add_argument("--force", action="store_true", help="replace an existing bundle")
+    x.set_defaults(func=cmd_export)
+
+    si = sub.add_parser("sitl", help="fly a bundle's numpy runtime in closed loop against the simulator")
+    si.add_argument("--bundle", required=True, type=Path, help="bundle folder from `aswarm export`")
+    si.add_argument("--scenario", default=None, help="default: the scenario the bundle was trained on")
+    si.add_argument("--episodes", type=int, default=200)
+    si.add_argument("--seed", type=int, default=10_000, help="evaluation seed, as for eval (same layouts)")
+    si.add_argument("--noise", type=float, default=0.0, metavar="METRES",
+                    help="std of Gaussian noise on the positions the runtime sees")
+    si.add_argument("--latency", type=int, default=0, metavar="STEPS",
+                    help="the runtime sees poses this many control steps old")
+    si.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+    si.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    si.set_defaults(func=cmd_sitl)
+
+    from aswarm.flight import fly as flight_fly
+
+    fl = sub.add_parser("fly", help="stream a bundle's velocity setpoints to Crazyflies (cflib), or --dry-run")
+    flight_fly.add_arguments(fl)
+    fl.set_defaults(func=cmd_fly)
+
+    def episode_flags(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
+        q.add_argument("--scenario", default=None, help="default: the scenario it was trained on")
+        q.add_argument("--seed", type=int, default=10_000, help="evaluation seed, as for eval")
+        q.add_argument("--episode-index", type=int, default=0, help="which episode of that seed (eval's order)")
+        q.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+
+    pl = sub.add_parser("plot", help="trajectory figure (3D, top and side views) or attention figure of one episode")
+    episode_flags(pl)
+    pl.add_argument("--out", type=Path, default=Path("traj.png"), help="figure file (.png, .pdf or .svg)")
+    pl.add_argument("--attention", action="store_true",
+                    help="draw one drone's attention weights over time above its distance to each obstacle")
+    pl.add_argument("--drone", type=int, default=0, help="the drone of the attention figure")
+    pl.add_argument("--no-3d", action="store_true", help="top and side views only")
+    pl.set_defaults(func=cmd_plot)
+
+    r = sub.add_parser("render", help="video of one episode with MuJoCo's offscreen renderer")
+    episode_flags(r)
+    r.add_argument("--out", type=Path, default=Path("episode.mp4"),
+                   help=".mp4 (needs imageio-ffmpeg, else a .gif is written) or .gif")
+    r.add_argument("--fps", type=int, default=25)
+    r.add_argument("--width", type=int, default=640)
+    r.add_argument("--height", type=int, default=480)
+    r.add_argument("--camera", choices=("follow", "overview"), default="follow",
+                   help="follow: behind the swarm; overview: the whole arena from above")
+    r.set_defaults(func=cmd_render)
+
+    sw = sub.add_parser("sweep", help="train a hyperparameter sweep (configurations x seeds) in one program",
+                        description="FILE is a TOML sweep file (see sweeps/). Configurations that differ only in "
+                        "value-only hyperparameters train inside one jit with vmap; re-running resumes.")
+    sw.add_argument("file", type=Path, help="sweep file, e.g. sweeps/race_lr.toml")
+    sw.add_argument("--out", type=Path, default=None, help="sweep folder (default runs/sweep-NAME)")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.add_argument("--bench", action="store_true",
+                    help="instead: time the configurations in one vmapped program vs one after another")
+    sw.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                    help="several hosts: address of process 0 (jax.distributed.initialize)")
+    sw.add_argument("--num-processes", type=int, default=1, help="several hosts: how many processes")
+    sw.add_argument("--process-id", type=int, default=0, help="several hosts: this process, 0 to N-1")
+    sw.set_defaults(func=cmd_sweep)
     return p
 
 

@@ -108,6 +108,37 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
     np.testing.assert_allclose(s.obs[0, :3], s.data.qpos[:3] - s.layout.gate_pos[1], atol=1e-5)
 
 
+def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
+    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0)
+    s = env.reset(jax.random.PRNGKey(0))
+    g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
+    normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
+    side = jnp.array([-jnp.sin(yaw), jnp.cos(yaw), 0.0])
+    up = jnp.array([0.0, 0.0, 1.0])
+    pos = jnp.stack([g - 0.5 * normal, g + 0.5 * normal, g + 0.3 * side - 0.4 * up + 0.2 * normal])
+    w, k = env.config.wrong_side_weight, env.config.lateral_weight
+    # on the axis in front: the distance; past the plane: + w * depth; off the axis: + k * offset
+    np.testing.assert_allclose(env._to_go(pos, s.layout, jnp.zeros(3, jnp.int32)),
+                               [0.5, 0.5 + w * 0.5, 0.2 + w * 0.2 + k * 0.5], rtol=1e-5)
+    goals = envs.make("obstacles")
+    sg = goals.reset(jax.random.PRNGKey(0))
+    p = sg.layout.waypoints[:, 0] + jnp.array([0.0, 0.0, 0.7])
+    np.testing.assert_allclose(goals._to_go(p, sg.layout, jnp.zeros(4, jnp.int32)), 0.7, rtol=1e-5)
+
+
+def test_staggered_track_start_holds_each_drone_until_its_release_time():
+    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1)
+    s = env.reset(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    start = np.asarray(s.layout.start_pos)
+    cmd = jnp.tile(jnp.array([0.0, 0.0, 1.0]), (3, 1))
+    for _ in range(6):  # 0.12 s: drone 0 released at 0, drone 1 at 0.1 s, drone 2 at 0.2 s
+        s = step(s, cmd)
+        assert float(s.reward[2]) == 0.0 and float(s.cost[2]) == 0.0
+    z = np.asarray(s.data.qpos.reshape(3, 7)[:, 2]) - start[:, 2]
+    assert z[0] > 0.02 and 0.0 < z[1] < z[0] / 5 and abs(z[2]) < 1e-3, z  # the controller lags the command
+
+
 def test_reaching_the_goal_finishes_with_success_metrics():
     env = envs.make("hover", layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))

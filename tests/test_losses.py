@@ -66,3 +66,12 @@ def test_penalized_advantage_and_penalty_loss_directions():
 def test_gain_target_range():
     t = losses.gain_target(jnp.array([0.0, 0.5, 3.0]), 0.5, 10.0)
     np.testing.assert_allclose(t, [10.0, 5.25, 0.5])
+
+
+def test_policy_gradient_loss_hand_computed_and_gradient():
+    import jax
+
+    logp, adv = jnp.array([-1.0, -2.0]), jnp.array([2.0, -1.0])
+    assert float(losses.policy_gradient_loss(logp, adv)) == pytest.approx(-((-1 * 2) + (-2 * -1)) / 2)
+    # d/dlogp = -A / N: raises the log-probability of actions with positive advantage only
+    np.testing.assert_allclose(jax.grad(losses.policy_gradient_loss)(logp, adv), [-1.0, 0.5])

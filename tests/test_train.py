@@ -3,6 +3,7 @@
 import dataclasses
 import json
 
+import chex
 import jax
 import numpy as np
 import pytest
@@ -35,6 +36,20 @@ def test_hover_learns_from_scratch(tmp_path):
     assert rows[-1]["train/explained_variance"] > rows[0]["train/explained_variance"]
     assert (run / "curves.png").stat().st_size > 10_000
     assert (run / "tb").is_dir() and json.loads((run / "config.json").read_text())["train"]["method"] == "mappo"
+
+
+def test_a2c_takes_one_full_batch_step_per_rollout():
+    cfg = TrainConfig(method="a2c", **SMALL)
+    assert (cfg.num_epochs, cfg.num_minibatches) == (1, 1)
+    from aswarm.agents.train import make_train
+
+    _, init, update_chunk, _ = make_train(cfg)
+    ts = jax.jit(init)(jax.random.PRNGKey(0))
+    ts2, m = jax.jit(update_chunk, static_argnums=1)(ts, 2)
+    assert m["train/loss"].shape == (2,) and np.all(np.isfinite(m["train/loss"]))
+    changed = jax.tree.map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))), ts.params["actor"],
+                           ts2.params["actor"])
+    assert all(jax.tree.leaves(changed))
 
 
 def test_eval_json_is_the_only_stdout(tmp_path, capsys):
@@ -107,6 +122,12 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
         checkpoint.load_config(tmp_path)
     cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
     run = runner.train(cfg, tmp_path / "r", progress=False)
+    # The policy-only copy (how the shipped pretrained policy is made) restores the same arrays.
+    from aswarm.agents import evaluate
+
+    small = checkpoint.copy_policy(run, tmp_path / "policy-only")
+    assert not any(small.rglob("state"))
+    chex.assert_trees_all_equal(evaluate.load(run)[1], evaluate.load(small)[1])
     other = dataclasses.replace(cfg, actor_hidden=(16,))
     runner.write_config(run, other, envs.make("hover").config)
     with pytest.raises(checkpoint.CheckpointError, match="cannot be restored into this configuration"):

@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from aswarm.envs import collisions as col
+
 _DIM = 4  # decision variables: the velocity (3) and the scaled shared slack
 _SLOTS = _DIM  # independent active constraints in R^4: at most 4
 _EPS = 1e-9
@@ -113,6 +115,23 @@ def floor_constraint(pos: jax.Array, gamma: jax.Array, *, z_min: float) -> Barri
     return BarrierConstraints(A, -gamma * h, jnp.ones(1, bool), h)
 
 
+def gate_constraints(pos: jax.Array, gate_center: jax.Array, gate_normal: jax.Array, present: jax.Array,
+                     gamma: jax.Array, *, half_opening: float, bar: float, drone_radius: float,
+                     margin: float = 0.0) -> BarrierConstraints:
+    """Rows for the frame of one gate: its 4 edges and the post to the floor (5 round bars).
+
+    pos [3]; gate_center [3] (centre of the opening); gate_normal [3] (horizontal direction of
+    passage); present [] bool; gamma [] or [5]. h = distance to the bar's axis − (bar/2 + r_d +
+    margin), ∇h the unit vector from the nearest point of the bar to the drone: a drone flying
+    through the middle of the opening sees only sideways normals and is not slowed.
+    """
+    yaw = jnp.arctan2(gate_normal[1], gate_normal[0])
+    frames = col.gate_frames(gate_center[None], yaw[None], half_opening, bar)[0]  # [5, 2, 3]
+    dist, n = _unit(pos - col.closest_on_segment(pos, frames[:, 0], frames[:, 1]))
+    h = dist - (bar / 2 + drone_radius + margin)
+    return BarrierConstraints(n, -gamma * h, jnp.broadcast_to(present, h.shape), h)
+
+
 def barrier_constraints(pos: jax.Array, vel: jax.Array, cyl_center: jax.Array, cyl_radius: jax.Array,
                         cyl_vel: jax.Array, cyl_present: jax.Array, nbr_pos: jax.Array, nbr_vel: jax.Array,
                         nbr_present: jax.Array, gamma: jax.Array, *, drone_radius: float, margin: float = 0.0,
@@ -142,7 +161,7 @@ def barrier_constraints(pos: jax.Array, vel: jax.Array, cyl_center: jax.Array, c
 # The QP is solved by the Goldfarb–Idnani dual active-set method on x = (u, √ρ s), in which the
 # cost is ½||x − x0||². It is exact (no tolerance on optimality beyond rounding), and in R^4 it
 # needs only a handful of add/drop steps, each costing one QR of at most 4 active normals. The
-# loop runs a fixed number of steps (finished problems idle) so it vmaps without divergence.
+# loop stops when every problem of a vmapped batch is done (finished problems idle meanwhile).
 #
 # Small vectors are Python lists of scalars (structure of arrays): under vmap every scalar op
 # becomes one op over the whole batch, which XLA:CPU vectorises; [B, 4] arrays with a reduction
@@ -207,7 +226,7 @@ def _active_set_loop(x0: list, cols: list, h: jax.Array, valid: jax.Array, max_i
     """Goldfarb–Idnani for min ½||x − x0||² s.t. G x ≥ h (rows where valid), G given by its columns.
 
     Starts from x0 with no active row (dual feasible: x0 is the unconstrained optimum) and takes
-    ``max_iter`` add/drop steps; finished problems idle. A warm start at clip(u_nom) with the
+    at most ``max_iter`` add/drop steps; finished problems idle. A warm start at clip(u_nom) with the
     clipped bounds active is also dual feasible but measured slower: hazards usually push u back
     inside the box, so the pre-activated bounds cost a drop step each. Returns the iterate, the
     active set as slot indices [4] and usage flags [4], and ``pending`` (a violated row was still
@@ -219,8 +238,8 @@ def _active_set_loop(x0: list, cols: list, h: jax.Array, valid: jax.Array, max_i
     big = jnp.asarray(jnp.inf, dt)
     zero = jnp.zeros((), dt)
 
-    def body(_, st):
-        x, normals, idx, used, lam, p, pending, lam_p = st
+    def body(st):
+        it, _, x, normals, idx, used, lam, p, pending, lam_p = st
         in_set = jnp.zeros(nc, bool)
         for j in range(_SLOTS):
             in_set = in_set | ((rows_id == idx[j]) & used[j])
@@ -266,11 +285,15 @@ def _active_set_loop(x0: list, cols: list, h: jax.Array, valid: jax.Array, max_i
             new[1].append(jnp.where(put, p, idx[j]))
             new[2].append((used[j] | put) & ~out)
             new[3].append(jnp.where(put, lam_p, jnp.where(out, 0.0, jnp.maximum(lam[j] - t * r[j], 0.0))))
-        return x, new[0], new[1], new[2], new[3], p, pending & ~add & go, lam_p
+        # Finished when this step had nothing to do: no violated row pending (or no step possible).
+        return it + 1, ~go, x, new[0], new[1], new[2], new[3], p, pending & ~add & go, lam_p
 
-    init = (x0, [[zero] * _DIM for _ in range(_SLOTS)], [jnp.int32(0)] * _SLOTS, [jnp.bool_(False)] * _SLOTS,
-            [zero] * _SLOTS, jnp.int32(0), jnp.bool_(False), zero)
-    x, _, idx, used, _, _, pending, _ = jax.lax.fori_loop(0, max_iter, body, init)
+    init = (jnp.int32(0), jnp.bool_(False), x0, [[zero] * _DIM for _ in range(_SLOTS)], [jnp.int32(0)] * _SLOTS,
+            [jnp.bool_(False)] * _SLOTS, [zero] * _SLOTS, jnp.int32(0), jnp.bool_(False), zero)
+    # A while loop rather than max_iter fixed steps: under vmap it runs until the slowest problem of the
+    # batch is done (finished ones idle), usually far fewer steps than the budget.
+    out = jax.lax.while_loop(lambda st: (st[0] < max_iter) & ~st[1], body, init)
+    _, _, x, _, idx, used, _, _, pending, _ = out
     return x, idx, used, pending
 
 
@@ -359,20 +382,27 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
 
 # ------------------------------------------------------- from observations
 def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_max: float, drone_radius: float,
-                    margin: float, max_iter: int = 16) -> FilterResult:
+                    margin: float, gate_half_opening: float = 0.0, gate_bar: float = 0.0,
+                    max_iter: int = 16) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]).
 
     Everything the barriers need is in the observation (relative cylinder positions, their
-    clearance and velocity, relative neighbour positions and velocities, altitude), so the
-    flight side can run the very same filter from its own observations. Positions are taken in a
-    frame centred on the drone's horizontal position, with z the altitude above the floor.
-    ``gain`` [..., n] is one class-K gain per drone, applied to all its barriers.
+    clearance and velocity, relative neighbour positions and velocities, altitude, the current
+    gate's centre and direction), so the flight side can run the very same filter from its own
+    observations. Positions are taken in a frame centred on the drone's horizontal position, with
+    z the altitude above the floor. ``gain`` [..., n] is one class-K gain per drone, applied to all
+    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | gate frame 5]``; the gate rows
+    are present when ``gate_bar > 0`` and the observation has a gate (non-zero direction).
     """
     own, cyl, nbr = layout.split(obs)
-    alt = own[..., 9:10]
-    vel = own[..., 13:16]
+    f = layout.own_slices
+    alt = own[..., f["altitude"]]
+    vel = own[..., f["vel"]]
     zero = jnp.zeros_like(alt)
     pos = jnp.concatenate([zero, zero, alt], -1)
+    gate_center = pos - own[..., f["target_rel"]]
+    gate_normal = own[..., f["target_normal"]]
+    gate_present = (jnp.sum(gate_normal**2, -1) > 0.25) & (gate_bar > 0)
     rel = cyl[..., 0:2]
     cyl_radius = jnp.linalg.norm(rel, axis=-1) - cyl[..., 2] - drone_radius
     cyl_present = cyl[..., 5] > 0.5
@@ -380,12 +410,16 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     nbr_vel = nbr[..., 3:6] + vel[..., None, :]
     nbr_present = nbr[..., 6] > 0.5
 
-    def one(p, v, cc, cr, cv, cp, nq, nv, npres, g, u):
+    def one(p, v, cc, cr, cv, cp, nq, nv, npres, gc, gn, gp, g, u):
         con = barrier_constraints(p, v, cc, cr, cv, cp, nq, nv, npres, g, drone_radius=drone_radius,
                                   margin=margin)
-        return filter_velocity(u, con.A, con.b, con.mask, u_max, max_iter=max_iter)
+        gate = gate_constraints(p, gc, gn, gp, g, half_opening=gate_half_opening, bar=gate_bar,
+                                drone_radius=drone_radius, margin=margin)
+        rows = [jnp.concatenate(x, 0) for x in zip(con, gate)]
+        return filter_velocity(u, rows[0], rows[1], rows[2], u_max, max_iter=max_iter)
 
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
-    return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present, gain, cmd)
+    return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present,
+              gate_center, gate_normal, gate_present, gain, cmd)

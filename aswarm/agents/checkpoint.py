@@ -79,3 +79,31 @@ def load_config(run_dir: Path) -> TrainConfig:
         return TrainConfig(**raw)
     except (KeyError, TypeError, json.JSONDecodeError) as e:
         raise CheckpointError(f"{path} is not a valid aswarm run config: {e}") from e
+
+
+def copy_policy(run_dir: Path, dest: Path, step: int | None = None) -> Path:
+    """Copy a run's config and the *policy* item of one checkpoint (no optimizer or env state) to ``dest``.
+
+    The copy is itself a run folder that ``aswarm eval`` and ``aswarm export`` read; it is how the
+    pretrained policy in ``aswarm/pretrained`` is made (kilobytes instead of the full training state).
+    Written to a temporary folder and renamed when complete.
+    """
+    import shutil
+
+    run_dir, dest = Path(run_dir), Path(dest)
+    step = manager(run_dir).latest_step() if step is None else step
+    if step is None:
+        raise CheckpointError(f"no checkpoint in {run_dir / 'checkpoints'}")
+    src = run_dir / "checkpoints" / str(step)
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "checkpoints" / str(step)).mkdir(parents=True)
+    shutil.copy2(run_dir / "config.json", tmp / "config.json")
+    for name in ("_CHECKPOINT_METADATA", "commit_success.txt"):
+        if (src / name).exists():
+            shutil.copy2(src / name, tmp / "checkpoints" / str(step) / name)
+    shutil.copytree(src / "policy", tmp / "checkpoints" / str(step) / "policy")
+    if dest.exists():
+        shutil.rmtree(dest)
+    tmp.rename(dest)
+    return dest

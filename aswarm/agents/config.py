@@ -11,6 +11,7 @@ METHODS = {
     "fixed_cbf": "CBF safety filter with a fixed gain (no attention), plain MAPPO objective",
     "mappo_lagrangian": "MAPPO-Lagrangian: one learned scalar multiplier, no filter",
     "mappo": "plain MAPPO: no cost, no filter",
+    "a2c": "synchronous advantage actor-critic (centralized critic, one gradient step per rollout): no cost, no filter",
 }
 
 
@@ -43,6 +44,8 @@ class TrainConfig:
     cbf_hidden: tuple[int, ...] = (64, 64)  # paper: (1024, 256)
     cbf_embed: int = 8  # paper: 3
     cbf_state_hidden: int = 64
+    # Multiplies the actor's Gaussian std (brax's var_scale): 1 starts at std 0.69 before the tanh.
+    action_std_scale: float = 1.0
     penalty_max: float = 2.0  # at 10 the penalty saturated within 20 updates and froze progress
     # Class-K gain range (1/s) of the safety filter. Above ~2/s a drone commanded at 2 m/s straight at a
     # cylinder still hit it: the filter assumes velocity follows the command at once, the onboard
@@ -67,7 +70,8 @@ class TrainConfig:
                      "cbf_embed", "cbf_state_hidden"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be > 0")
-        for name in ("actor_lr", "critic_lr", "cbf_lr", "clip", "max_grad_norm", "checkpoint_minutes"):
+        for name in ("actor_lr", "critic_lr", "cbf_lr", "clip", "max_grad_norm", "checkpoint_minutes",
+                     "action_std_scale"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be > 0")
         for name in ("gamma", "gae_lambda"):
@@ -78,6 +82,14 @@ class TrainConfig:
                              f"{self.num_envs * self.rollout_steps}")
         if not 0 < self.gain_min < self.gain_max:
             raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
+
+    @property
+    def num_epochs(self) -> int:
+        return 1 if self.method == "a2c" else self.epochs
+
+    @property
+    def num_minibatches(self) -> int:
+        return 1 if self.method == "a2c" else self.minibatches
 
     @property
     def steps_per_update(self) -> int:

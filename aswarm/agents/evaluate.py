@@ -1,8 +1,17 @@
-"""Evaluation of a trained policy over vmapped episodes with unseen seeds."""
+"""Evaluation of a trained policy over vmapped episodes with unseen seeds.
+
+``evaluate_checkpoint`` runs the episodes, :func:`summarize` turns their per-episode metrics into the
+report (rates with 95 % Wilson intervals), :func:`write_report` writes it as JSON and CSV.
+"""
 
 from __future__ import annotations
 
+import csv
+import dataclasses
+import io
+import json
 import math
+import os
 from pathlib import Path
 
 import jax
@@ -12,9 +21,14 @@ from brax.training.acme import running_statistics
 
 from aswarm import config_args, envs
 from aswarm.agents import checkpoint
+from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
+from aswarm.envs.collisions import KINDS
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "race"
+# Reports of the shipped policy go here (relative to the working directory), not into the package.
+PRETRAINED_REPORT_DIR = Path("runs") / "eval"
+COLLISION_KINDS = KINDS[1:]  # obstacle, drone, gate, floor, bounds
 
 
 def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -71,16 +85,21 @@ def load(checkpoint_dir: str | Path):
                                          "'pretrained'")
     config = checkpoint.load_config(run_dir)
     agent = Agent.build(config)
-    like = {"params": agent.init_params(jax.random.PRNGKey(0)),
+    # Only the structure is needed, and evaluating the initializers eagerly took seconds: zeros of their shapes.
+    shapes = jax.eval_shape(agent.init_params, jax.random.PRNGKey(0))
+    like = {"params": jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), shapes),
             "obs_norm": running_statistics.init_state(jax.ShapeDtypeStruct((agent.env.observation_size,), jnp.float32)),
             "update": jnp.zeros((), jnp.int32)}
     return config, checkpoint.restore(checkpoint.manager(run_dir), like, item="policy")
 
 
-def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: int = 1000, seed: int = 10_000,
-                        env_overrides: list[str] | None = None) -> dict:
-    if episodes <= 0:
-        raise ValueError(f"invalid episodes={episodes}: must be > 0")
+def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
+               env_overrides: list[str] | None = None) -> tuple[TrainConfig, Agent, dict]:
+    """(config, agent on the evaluation env, {params, obs_norm, update}) of a checkpoint.
+
+    The evaluation env is the training env with ``scenario`` and ``env_overrides`` ("FIELD=VALUE") applied;
+    a ValueError says why when the networks cannot run on it.
+    """
     config, restored = load(checkpoint_dir)
     overrides = dict(config.env_overrides)
     overrides.update(config_args.parse_assignments(env_overrides or [], envs.EnvConfig))
@@ -91,36 +110,124 @@ def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: i
             f"checkpoint was trained on {config.scenario!r} with {trained.num_agents} drones and observations of "
             f"size {trained.observation_size}; scenario {env.config.scenario!r} has {env.num_agents} drones and "
             f"size {env.observation_size}: the centralized critic and observation layout do not transfer")
-    agent = Agent.build(config, env)
-    rec, ended, intervention_rate = rollout_episodes(agent, restored["params"], restored["obs_norm"], env, episodes,
-                                                     jax.random.PRNGKey(seed))
-    rec = {k: np.asarray(v) for k, v in rec.items()}
-    n = episodes
-    out = {"checkpoint": str(checkpoint_dir), "method": config.method, "scenario": env.config.scenario,
-           "episodes": n, "seed": seed, "trained_updates": int(restored["update"]),
-           "episodes_ended": int(np.sum(np.asarray(ended)))}
-    for name in ("success", "collision"):
+    return config, Agent.build(config, env), restored
+
+
+def summarize(rec: dict, intervention_rate: float = 0.0) -> dict:
+    """The report's figures from per-episode metrics ``rec`` ({name: [episodes]}, as ``SwarmEnv._metrics``).
+
+    Rates come with 95 % Wilson intervals (``*_ci95``). ``mission_time`` is the mean over *successful*
+    episodes only (None when none succeeded): a failed episode has no mission time. Every other figure is
+    the mean over all episodes; ``min_clearance_worst`` is the minimum.
+    """
+    rec = {k: np.asarray(v, dtype=np.float64) for k, v in rec.items()}
+    n = int(np.size(rec["success"]))
+    if n == 0:
+        raise ValueError("invalid episodes=0: summarize needs at least one episode")
+    out: dict = {}
+    for name in ("success", "collision") + tuple(f"collision_{k}" for k in COLLISION_KINDS):
         k = float(rec[name].sum())
         out[f"{name}_rate"] = k / n
         out[f"{name}_ci95"] = wilson(k, n)
+    out["drone_success_rate"] = float(rec["drone_success"].mean())
     out["drone_collision_rate"] = float(rec["drone_collision"].mean())
-    for name in ("min_clearance", "mean_separation", "mission_time", "mean_speed", "progress"):
+    won = rec["success"] > 0.5
+    out["successful_episodes"] = int(won.sum())
+    out["mission_time"] = float(rec["mission_time"][won].mean()) if won.any() else None
+    for name in ("progress", "min_clearance", "mean_separation", "mean_speed", "episode_return"):
         out[name] = float(rec[name].mean())
     out["min_clearance_worst"] = float(rec["min_clearance"].min())
     out["filter_intervention_rate"] = float(intervention_rate)
     return out
 
 
+def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: int = 1000, seed: int = 10_000,
+                        env_overrides: list[str] | None = None, with_method: str | None = None) -> dict:
+    """Evaluate a checkpoint; ``with_method`` runs its networks as another method would (e.g. a policy trained
+    without a safety layer under ``fixed_cbf``'s filter): every method has the same parameter tree."""
+    if episodes <= 0:
+        raise ValueError(f"invalid episodes={episodes}: must be > 0")
+    config, agent, restored = load_agent(checkpoint_dir, scenario, env_overrides)
+    if with_method is not None:
+        config = dataclasses.replace(config, method=with_method)
+        agent = Agent.build(config, agent.env)
+    env = agent.env
+    rec, ended, intervention_rate = rollout_episodes(agent, restored["params"], restored["obs_norm"], env, episodes,
+                                                     jax.random.PRNGKey(seed))
+    out = {"checkpoint": str(checkpoint_dir), "method": config.method, "scenario": env.config.scenario,
+           "episodes": episodes, "seed": seed, "trained_updates": int(restored["update"]),
+           "env_overrides": sorted(env_overrides or []), "episodes_ended": int(np.sum(np.asarray(ended)))}
+    out.update(summarize({k: np.asarray(v) for k, v in rec.items()}, float(intervention_rate)))
+    return out
+
+
+def report_dir(checkpoint_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Where ``aswarm eval`` writes its files: ``out``, else the run folder, else ``runs/eval`` for 'pretrained'."""
+    if out is not None:
+        return Path(out)
+    return PRETRAINED_REPORT_DIR if str(checkpoint_dir) == "pretrained" else Path(checkpoint_dir)
+
+
+def _flat(result: dict) -> dict:
+    """One CSV row: intervals split into ``_lo``/``_hi``, lists as JSON, None as empty."""
+    row = {}
+    for k, v in result.items():
+        if k.endswith("_ci95"):
+            row[k + "_lo"], row[k + "_hi"] = v
+        elif isinstance(v, (list, tuple, dict)):
+            row[k] = json.dumps(v)
+        else:
+            row[k] = "" if v is None else v
+    return row
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    # A reader (or a crash) never sees half a file: write beside it, then rename over it.
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_report(result: dict, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``eval_<scenario>.json`` and ``.csv`` (one header row, one value row) into ``out_dir``."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"invalid --out {str(out_dir)!r}: is a file; allowed: a folder")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"eval_{result['scenario']}"
+    row = _flat(result)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(row), lineterminator="\n")
+    writer.writeheader()
+    writer.writerow(row)
+    json_path, csv_path = out_dir / f"{stem}.json", out_dir / f"{stem}.csv"
+    _write_atomic(json_path, json.dumps(result, indent=2) + "\n")
+    _write_atomic(csv_path, buf.getvalue())
+    return json_path, csv_path
+
+
 def format_table(r: dict) -> str:
     lines = [f"{r['method']} on {r['scenario']}: {r['episodes']} episodes (seed {r['seed']}, "
              f"{r['trained_updates']} updates trained)"]
-    for name in ("success", "collision"):
+
+    def rate_line(label: str, name: str) -> str:
         lo, hi = r[f"{name}_ci95"]
-        rate = 100 * r[name + "_rate"]
-        lines.append(f"  {name + ' rate':22s} {rate:6.1f} %   95% CI [{100 * lo:.1f}, {100 * hi:.1f}]")
+        return f"  {label:24s} {100 * r[name + '_rate']:6.1f} %   95% CI [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+    lines += [rate_line("success rate", "success"), rate_line("collision rate", "collision")]
+    lines += [rate_line(f"  by {kind}", f"collision_{kind}") for kind in COLLISION_KINDS
+              if f"collision_{kind}_rate" in r]
     for name, unit in (("drone_collision_rate", ""), ("progress", ""), ("min_clearance", "m"),
                        ("min_clearance_worst", "m"), ("mean_separation", "m"), ("mission_time", "s"),
                        ("mean_speed", "m/s"), ("filter_intervention_rate", "")):
-        shown = "   (none)" if name.startswith("min_clearance") and r[name] >= 999 else f"{r[name]:8.3f} {unit}"
+        v = r.get(name)
+        if name.startswith("min_clearance") and v is not None and v >= 999:
+            shown = "   (none)"
+        elif v is None:
+            shown = "   (no successful episode)"
+        else:
+            shown = f"{v:8.3f} {unit}"
+        if name == "mission_time" and v is not None and "successful_episodes" in r:
+            shown += f"   (mean of the {r['successful_episodes']} successful episodes)"
         lines.append(f"  {name:24s} {shown}")
     return "\n".join(lines)

@@ -51,6 +51,11 @@ def ppo_clip_loss(log_prob: jax.Array, old_log_prob: jax.Array, advantages: jax.
     return -jnp.mean(jnp.minimum(ratio * advantages, clipped * advantages))
 
 
+def policy_gradient_loss(log_prob: jax.Array, advantages: jax.Array) -> jax.Array:
+    """A2C's ``-E[log pi(a|s) A]`` (one step per rollout, so no ratio and no clipping)."""
+    return -jnp.mean(log_prob * jax.lax.stop_gradient(advantages))
+
+
 def value_loss(values: jax.Array, targets: jax.Array) -> jax.Array:
     return 0.5 * jnp.mean((values - targets) ** 2)
 

@@ -19,7 +19,7 @@ from brax.training.distribution import NormalTanhDistribution
 from flax import struct
 
 from aswarm import envs
-from aswarm.agents import cbf_filter, losses
+from aswarm.agents import cbf_filter, hparams, losses
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import Actor, AttentionCBF, CentralCritic, hazard_mask
 
@@ -47,6 +47,9 @@ class TrainState:
     key: jax.Array
     update: jax.Array  # [] int32, updates done
     env_steps: jax.Array  # [] float32 (int32 would overflow past 2^31)
+    # Swept value-only hyperparameters ({field: [] float32}, see hparams.py); empty for a plain run, so
+    # plain checkpoints keep their layout.
+    hparams: dict = struct.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,7 +76,7 @@ class Agent:
             cbf=AttentionCBF(layout=env.obs_layout, embed=config.cbf_embed, hidden=config.cbf_hidden,
                              state_hidden=config.cbf_state_hidden, penalty_max=config.penalty_max,
                              gain_min=config.gain_min, gain_max=config.gain_max),
-            dist=NormalTanhDistribution(event_size=env.action_size),
+            dist=NormalTanhDistribution(event_size=env.action_size, var_scale=config.action_std_scale),
         )
 
     def init_params(self, key: jax.Array) -> dict:
@@ -118,8 +121,9 @@ class Agent:
             gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
         else:
             gain = jnp.full(cmd.shape[:-1], self.config.fixed_gain)
-        res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, self.env.config.max_speed,
-                                         self.env.config.cf.collision_radius, self.config.filter_margin)
+        ec = self.env.config
+        res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
+                                         self.config.filter_margin, ec.gate_half_opening, ec.gate_bar)
         return res.u, res.intervened, res.correction_norm
 
     def act(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:
@@ -132,43 +136,65 @@ def make_env(config: TrainConfig) -> envs.SwarmEnv:
     return envs.make(config.scenario, **dict(config.env_overrides))
 
 
-def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+def make_optimizer(config: TrainConfig, h: dict | None = None) -> optax.GradientTransformation:
+    """``h`` (from ``hparams.resolve``) may hold traced rates: Adam's state does not store them, so the
+    optimizer state has the same layout either way."""
+    h = h or hparams.resolve(config, {})
+
     def adam(lr):
-        return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
+        return optax.chain(optax.clip_by_global_norm(h["max_grad_norm"]), optax.adam(lr))
 
     labels = {"actor": "actor", "critic": "critic", "cost_critic": "critic", "cbf": "cbf", "lagrange": "cbf"}
     return optax.multi_transform(
-        {"actor": adam(config.actor_lr), "critic": adam(config.critic_lr), "cbf": adam(config.cbf_lr)},
+        {"actor": adam(h["actor_lr"]), "critic": adam(h["critic_lr"]), "cbf": adam(h["cbf_lr"])},
         lambda params: {k: jax.tree.map(lambda _, lab=labels[k]: lab, v) for k, v in params.items()},
     )
 
 
-def make_train(config: TrainConfig):
+def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_rows=None):
     """Returns ``(agent, init, update_chunk, train)``; the functions are pure and jittable.
 
     ``init(key) -> TrainState``; ``update_chunk(state, n) -> (state, metrics [n])``;
     ``train(key)`` runs ``config.num_updates`` updates from ``init``.
+    With ``sweep_fields`` (value-only hyperparameters, see ``hparams.py``) ``init(key, values)`` takes
+    ``{field: scalar}`` and the trainer reads those fields from the state, so it can be vmapped over them.
+    ``shard_rows`` (``sharding.rows_constraint``) lays each minibatch's rows out over devices, so the
+    gradient is computed data-parallel and averaged by an all-reduce.
     """
+    sweep_fields = hparams.check_fields(sweep_fields)
+    shard_rows = shard_rows or (lambda x: x)
     agent = Agent.build(config)
     env = agent.env
     wenv = envs.wrap_for_training(env, config.num_envs)
     n, d = env.num_agents, env.observation_size
-    optimizer = make_optimizer(config)
     b = config.num_envs
 
-    def init(key: jax.Array) -> TrainState:
+    def agent_for(h: dict) -> Agent:
+        # The CBF network scales its outputs by these bounds: rebuild it with the traced ones when swept.
+        if not set(hparams.NETWORK_FIELDS) & set(sweep_fields):
+            return agent
+        cbf = agent.cbf.clone(**{f: h[f] for f in hparams.NETWORK_FIELDS})
+        return dataclasses.replace(agent, cbf=cbf)
+
+    def init(key: jax.Array, values: dict | None = None) -> TrainState:
+        values = hparams.check_values(sweep_fields, values)
         k_param, k_env, k_run = jax.random.split(key, 3)
         params = agent.init_params(k_param)
+        if "lagrange_init" in values:
+            params["lagrange"] = jnp.asarray(values["lagrange_init"], jnp.float32)
         obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
+        optimizer = make_optimizer(config, hparams.resolve(config, values))
         return TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
                           env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
-                          env_steps=jnp.zeros((), jnp.float32))
+                          env_steps=jnp.zeros((), jnp.float32), hparams=values)
 
     def rollout(ts: TrainState, key: jax.Array):
+        ag = agent_for(hparams.resolve(config, ts.hparams))
+
         def step(env_state, k):
             obs = env_state.obs
-            cmd, raw, logp = agent.policy(ts.params, ts.obs_norm, obs, k)
-            safe, intervened, corr = agent.safe_command(ts.params, ts.obs_norm, obs, cmd)
+            cmd, raw, logp = ag.policy(ts.params, ts.obs_norm, obs, k)
+            safe, intervened, corr = ag.safe_command(ts.params, ts.obs_norm, obs, cmd)
             nxt = wenv.step(env_state, safe)
             done = nxt.done
             episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}
@@ -182,7 +208,7 @@ def make_train(config: TrainConfig):
         joint = agent.normalize(obs_norm, obs).reshape(*obs.shape[:-2], n * d)
         return agent.critic.apply(params["critic"], joint), agent.cost_critic.apply(params["cost_critic"], joint)
 
-    def loss_fn(params, obs_norm, mb):
+    def loss_fn(params, obs_norm, mb, h):
         obs, raw, old_logp, adv, cost_adv, targets, cost_targets, excess, gain_tgt = mb
         nobs = agent.normalize(obs_norm, obs)
         p = agent.actor.apply(params["actor"], nobs)
@@ -193,7 +219,7 @@ def make_train(config: TrainConfig):
         a = losses.normalize(adv)
         aux = {}
         if config.uses_attention:
-            theta, _ = agent.cbf.apply(params["cbf"], nobs, hazard_mask(env.obs_layout, obs))
+            theta, _ = agent_for(h).cbf.apply(params["cbf"], nobs, hazard_mask(env.obs_layout, obs))
             penalty, gain = theta[..., 0], theta[..., 1]
             a = losses.penalized_advantage(a, cost_adv - jnp.mean(cost_adv), penalty)
             pen_loss = losses.penalty_loss(penalty, cost_adv, excess)
@@ -206,12 +232,15 @@ def make_train(config: TrainConfig):
             aux.update(penalty=lam)
         else:
             pen_loss = cbf_loss = jnp.zeros(())
-        actor_loss = losses.ppo_clip_loss(logp, old_logp, a, config.clip)
+        if config.method == "a2c":
+            actor_loss = losses.policy_gradient_loss(logp, a)
+        else:
+            actor_loss = losses.ppo_clip_loss(logp, old_logp, a, h["clip"])
         v, vc = values(params, obs_norm, obs)
         v_loss = losses.value_loss(v, targets)
         vc_loss = losses.value_loss(vc, cost_targets) if config.uses_cost else jnp.zeros(())
-        total = (actor_loss + config.value_coef * (v_loss + vc_loss) + pen_loss + config.cbf_coef * cbf_loss
-                 - config.entropy_coef * entropy)
+        total = (actor_loss + h["value_coef"] * (v_loss + vc_loss) + pen_loss + h["cbf_coef"] * cbf_loss
+                 - h["entropy_coef"] * entropy)
         approx_kl = jnp.mean(old_logp - logp)
         aux.update(actor_loss=actor_loss, value_loss=v_loss, cost_value_loss=vc_loss, entropy=entropy,
                    approx_kl=approx_kl, loss=total)
@@ -219,13 +248,15 @@ def make_train(config: TrainConfig):
 
     def update(ts: TrainState, _):
         key, k_roll, k_perm = jax.random.split(ts.key, 3)
+        h = hparams.resolve(config, ts.hparams)
+        optimizer = make_optimizer(config, h)
         env_state, tr = rollout(ts, k_roll)
         v, vc = values(ts.params, ts.obs_norm, tr.obs)
         nv, nvc = values(ts.params, ts.obs_norm, tr.final_obs)
-        adv, targets = losses.gae(tr.reward, v, nv, tr.done, tr.truncated, config.gamma, config.gae_lambda)
-        cadv, ctargets = losses.gae(tr.cost, vc, nvc, tr.done, tr.truncated, config.gamma, config.gae_lambda)
-        excess = jnp.mean(ctargets) - config.cost_limit
-        gain_tgt = losses.gain_target(ctargets, config.gain_min, config.gain_max)
+        adv, targets = losses.gae(tr.reward, v, nv, tr.done, tr.truncated, h["gamma"], h["gae_lambda"])
+        cadv, ctargets = losses.gae(tr.cost, vc, nvc, tr.done, tr.truncated, h["gamma"], h["gae_lambda"])
+        excess = jnp.mean(ctargets) - h["cost_limit"]
+        gain_tgt = losses.gain_target(ctargets, h["gain_min"], h["gain_max"])
         flat = lambda x: x.reshape((config.rollout_steps * b,) + x.shape[2:])  # noqa: E731
         data = (flat(tr.obs), flat(tr.raw_action), flat(tr.log_prob), flat(adv), flat(cadv), flat(targets),
                 flat(ctargets), excess, flat(gain_tgt))
@@ -233,20 +264,21 @@ def make_train(config: TrainConfig):
         def epoch(carry, k):
             params, opt_state = carry
             perm = jax.random.permutation(k, config.rollout_steps * b)
-            shuffled = [x if x.ndim == 0 else x[perm].reshape((config.minibatches, -1) + x.shape[1:]) for x in data]
+            shuffled = [x if x.ndim == 0 else shard_rows(x[perm].reshape((config.num_minibatches, -1) + x.shape[1:]))
+                        for x in data]
 
             def minibatch(c, i):
                 prm, ost = c
                 mb = [x if x.ndim == 0 else x[i] for x in shuffled]
-                (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(prm, ts.obs_norm, mb)
+                (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(prm, ts.obs_norm, mb, h)
                 upd, ost = optimizer.update(grads, ost, prm)
                 aux["grad_norm"] = optax.tree.norm(grads)
                 return (optax.apply_updates(prm, upd), ost), aux
 
-            return jax.lax.scan(minibatch, (params, opt_state), jnp.arange(config.minibatches))
+            return jax.lax.scan(minibatch, (params, opt_state), jnp.arange(config.num_minibatches))
 
         (params, opt_state), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state),
-                                                jax.random.split(k_perm, config.epochs))
+                                                jax.random.split(k_perm, config.num_epochs))
         obs_norm = running_statistics.update(ts.obs_norm, flat(tr.obs).reshape(-1, d))
         eps = jnp.maximum(tr.episode["episodes"].sum(), 1.0)
         metrics = {f"episode/{k_}": v_.sum() / eps for k_, v_ in tr.episode.items() if k_ != "episodes"}
@@ -265,7 +297,7 @@ def make_train(config: TrainConfig):
     def update_chunk(ts: TrainState, num_updates: int):
         return jax.lax.scan(update, ts, None, length=num_updates)
 
-    def train(key: jax.Array):
-        return update_chunk(init(key), config.num_updates)
+    def train(key: jax.Array, values: dict | None = None):
+        return update_chunk(init(key, values), config.num_updates)
 
     return agent, init, update_chunk, train

@@ -47,10 +47,15 @@ def gate_frames(gate_pos: jax.Array, gate_yaw: jax.Array, half_opening: float, b
     return jnp.concatenate([edges, post], 1)
 
 
-def point_segment_distance(p: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+def closest_on_segment(p: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+    """The point of segment ``a``-``b`` nearest to ``p`` (broadcasting over leading axes)."""
     ab = b - a
     t = jnp.clip(jnp.sum((p - a) * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
-    return jnp.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+    return a + t[..., None] * ab
+
+
+def point_segment_distance(p: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.linalg.norm(p - closest_on_segment(p, a, b), axis=-1)
 
 
 def gate_clearance(pos: jax.Array, frames: jax.Array, bar: float, r: float) -> jax.Array:

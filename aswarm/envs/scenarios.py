@@ -42,11 +42,12 @@ SCENARIOS: dict[str, Scenario] = {
     ),
     "race": Scenario(
         "track", "paper Case 2: closed circuit, 4 square gates in order, 8 static cylinders",
-        dict(num_agents=4, num_obstacles=8, num_gates=4, episode_seconds=40.0),
+        dict(num_agents=4, num_obstacles=8, num_gates=4, episode_seconds=40.0, start_spacing=0.8, start_interval=1.0),
     ),
     "dynamic": Scenario(
         "track", "the race track's gates with 1 to 3 moving cylinders crossing the racing line",
-        dict(num_agents=4, num_obstacles=0, num_moving=3, min_moving=1, num_gates=4, episode_seconds=40.0),
+        dict(num_agents=4, num_obstacles=0, num_moving=3, min_moving=1, num_gates=4, episode_seconds=40.0,
+             start_spacing=0.8, start_interval=1.0),
     ),
     "lab": Scenario(
         "track", "the paper's real flight: 2 drones, 2 gates, 3 cylinders in a 4 x 4 x 2 m room",
@@ -233,13 +234,15 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
     present = static | (jnp.arange(m) - cfg.num_obstacles < n_moving)
     omega = jnp.where(static, 0.0, 2 * np.pi / cfg.moving_period)
 
-    # Starts: a grid behind the start point, facing the direction of travel.
+    # Starts: behind the start point (a column or a grid), facing the direction of travel.
     heading = jnp.asarray(geo.start_heading)
     left = jnp.array([-heading[1], heading[0]])
     if kind == "crossing":
         width = cfg.arena_high[1] - cfg.arena_low[1] - 2.0
         lanes = (np.arange(n) - (n - 1) / 2) * min(1.0, width / max(n - 1, 1))
         offs = np.stack([np.zeros(n), lanes], -1)
+    elif cfg.start_formation == "column":
+        offs = np.stack([np.arange(n) * cfg.start_spacing, np.zeros(n)], -1)
     else:
         offs = _start_grid(n, cfg.start_spacing)
     ks = jax.random.split(k_start, 2)

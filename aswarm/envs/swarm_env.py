@@ -5,7 +5,8 @@ onboard controller at ``ctrl_freq`` and MJX physics at ``sim_freq`` inside
 ``lax.scan``; collisions, gate crossings and goal arrivals are checked after
 every physics step. A drone that completes its mission leaves the course (it
 stops and no longer counts for collisions or as a neighbour), as a finished
-drone lands in real flights. The episode terminates when every drone has
+drone lands in real flights. Track starts can be staggered (``start_interval``): a drone
+hovers where it is, earning nothing, until its release time. The episode terminates when every drone has
 finished or any drone collides, and is truncated at ``episode_seconds``.
 """
 
@@ -60,6 +61,15 @@ class ObsLayout:
     @property
     def size(self) -> int:
         return self.own_dim + self.num_cylinders * self.cyl_dim + self.num_neighbours * self.nbr_dim
+
+    @property
+    def own_slices(self) -> dict[str, slice]:
+        """Name -> slice of each own-state field inside the ``own`` part."""
+        out, off = {}, 0
+        for name, size, _ in OWN_FIELDS:
+            out[name] = slice(off, off + size)
+            off += size
+        return out
 
     def split(self, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """[..., size] -> own [..., own_dim], cylinders [..., M, cyl_dim], neighbours [..., n-1, nbr_dim]."""
@@ -125,6 +135,8 @@ class SwarmEnv:
         self._data0 = mjx.make_data(self.mjx_model)
         n = config.num_agents
         self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=n - 1)
+        stagger = config.start_interval if self.kind == "track" else 0.0
+        self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
         self._others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
 
     # Sizes, as MuJoCo Playground names them.
@@ -182,12 +194,12 @@ class SwarmEnv:
         # Inside jit a NaN cannot raise; a NaN command becomes a hover command.
         cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -cfg.max_speed, cfg.max_speed)
         tr0 = state.tracker
-        active0 = ~tr0.finished
+        # Flying and released (staggered track starts): the others hover where they are.
+        active0 = ~tr0.finished & (state.data.time >= self._release_time)
         cmd = jnp.where(active0[:, None], cmd, 0.0)
         layout = state.layout
         frames = col.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
         p0 = drone_state(state.data, n).pos
-        target0 = self._target_pos(layout, tr0.target)
 
         def control(carry, _):
             data, tr, hazard = carry
@@ -217,7 +229,7 @@ class SwarmEnv:
             d = jnp.linalg.norm(drones.pos - self._target_pos(layout, tr.target), axis=-1)
             reward = 1.0 / (d + cfg.paper_epsilon)
         else:
-            progress = jnp.linalg.norm(p0 - target0, axis=-1) - jnp.linalg.norm(drones.pos - target0, axis=-1)
+            progress = self._to_go(p0, layout, tr0.target) - self._to_go(drones.pos, layout, tr0.target)
             reward = (cfg.progress_weight * progress + cfg.gate_bonus * passed
                       + cfg.finish_bonus * newly_finished - cfg.time_penalty * cfg.dt)
         reward = jnp.where(newly_collided, -cfg.collision_penalty, reward)
@@ -257,6 +269,22 @@ class SwarmEnv:
     def _target_pos(self, layout: Layout, target: jax.Array) -> jax.Array:
         k = jnp.minimum(target, self.num_waypoints - 1)
         return jnp.take_along_axis(layout.waypoints, k[:, None, None], axis=1)[:, 0]
+
+    def _to_go(self, pos: jax.Array, layout: Layout, target: jax.Array) -> jax.Array:
+        """[n] distance left to each drone's waypoint ``target`` (m).
+
+        Goals: the distance. Gates: ``|along| + lateral_weight * off_axis + wrong_side_weight * past``, in
+        the gate's frame (along its direction of passage, off its axis, and the depth past its plane).
+        """
+        rel = pos - self._target_pos(layout, target)
+        if self.kind != "track":
+            return jnp.linalg.norm(rel, axis=-1)
+        cfg = self.config
+        yaw = layout.gate_yaw[jnp.minimum(target, cfg.num_gates - 1)]
+        along = rel[:, 0] * jnp.cos(yaw) + rel[:, 1] * jnp.sin(yaw)
+        side = -rel[:, 0] * jnp.sin(yaw) + rel[:, 1] * jnp.cos(yaw)
+        off_axis = jnp.sqrt(side**2 + rel[:, 2] ** 2 + 1e-12)
+        return jnp.abs(along) + cfg.lateral_weight * off_axis + cfg.wrong_side_weight * jnp.maximum(along, 0.0)
 
     def _check(self, prev, pos, t, layout: Layout, frames, tr: Tracker):
         """Advance waypoints and detect collisions after one physics step."""

@@ -1,0 +1,134 @@
+"""``aswarm export``: a checkpoint's policy as a numpy bundle for the flight side (``aswarm.flight``).
+
+The bundle holds what the deterministic, filtered policy (``Agent.act``) needs and nothing of
+JAX: the actor, the observation normalizer and the attention-CBF network as plain float32 arrays in
+``policy.npz``, and ``manifest.json`` with the scenario, the swarm, the observation layout field by
+field, the action's bounds and units, the control rate, the safety filter's parameters, the
+training config's sha256 and the npz's sha256. See ``aswarm/flight/bundle.py`` for the format.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from aswarm.agents import cbf_filter
+from aswarm.agents.config import TrainConfig
+from aswarm.agents.networks import ACTIVATIONS
+from aswarm.envs.scenarios import SCENARIOS
+from aswarm.envs.swarm_env import SwarmEnv
+from aswarm.flight import bundle as fb
+from aswarm.flight.observe import ObsLayout
+
+
+def policy_arrays(params: dict, obs_norm) -> dict[str, np.ndarray]:
+    """Flat ``{name: float32 array}`` of the actor, the attention-CBF network and the normalizer.
+
+    Names are the flax paths without the ``params`` level: ``actor/MLP_0/Dense_0/kernel``,
+    ``cbf/W_Q/kernel``, and ``obs_norm/mean``, ``obs_norm/std`` (a standard deviation, as brax stores it).
+    """
+    out = {}
+    for net in ("actor", "cbf"):
+        for path, leaf in jax.tree_util.tree_flatten_with_path(params[net]["params"])[0]:
+            name = "/".join([net] + [str(getattr(k, "key", k)) for k in path])
+            out[name] = np.asarray(leaf, np.float32)
+    out["obs_norm/mean"] = np.asarray(obs_norm.mean, np.float32)
+    out["obs_norm/std"] = np.asarray(obs_norm.std, np.float32)
+    return out
+
+
+def config_json(config: TrainConfig, env: SwarmEnv) -> str:
+    """The training config as ``runner.write_config`` writes ``config.json`` (its sha256 goes in the manifest)."""
+    payload = {"train": dataclasses.asdict(config), "env": dataclasses.asdict(env.config)}
+    return json.dumps(payload, indent=2, default=str)
+
+
+def _activation(name: str) -> str:
+    if name not in ACTIVATIONS:
+        raise ValueError(f"activation {name!r} has no flight-side equivalent: allowed: {', '.join(ACTIVATIONS)}")
+    # flax's nn.gelu defaults to the tanh approximation; say so, the flight side computes exactly that.
+    return "gelu_tanh" if name == "gelu" else name
+
+
+def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_updates: int,
+                   config_text: str) -> dict:
+    """The manifest of ``config``'s policy on ``env`` (without arrays and hash, added when written)."""
+    from aswarm.agents.train import Agent
+
+    agent = Agent.build(config, env)
+    ec = env.config
+    geo = env.geometry
+    fv = inspect.signature(cbf_filter.filter_velocity).parameters
+    bc = inspect.signature(cbf_filter.barrier_constraints).parameters
+    env_fields = dict(num_agents=ec.num_agents, num_cylinders=ec.num_cylinders, num_gates=ec.num_gates,
+                      max_speed=ec.max_speed, policy_freq=ec.policy_freq, collision_radius=ec.cf.collision_radius,
+                      arena_low=list(ec.arena_low), arena_high=list(ec.arena_high),
+                      gate_half_opening=ec.gate_half_opening, gate_bar=ec.gate_bar, goal_radius=ec.goal_radius,
+                      episode_seconds=ec.episode_seconds, safety_margin=ec.safety_margin)
+    course = {"gates": [[*map(float, p), float(y)] for p, y in zip(geo.gate_pos, geo.gate_yaw)],
+              "gates_meaning": "nominal (x, y, z) m and yaw rad of each gate in order; episodes jitter them",
+              "start_center": [float(v) for v in geo.start_center],
+              "goal_center": [float(v) for v in geo.goal_center]}
+    networks = {
+        "actor": {"hidden": list(agent.actor.hidden), "activation": _activation(agent.actor.activation),
+                  "out": 6, "out_meaning": "[loc (3) | scale (3)] of a tanh-Gaussian; the command is "
+                                           "tanh(loc) * max_speed"},
+        "cbf": {"embed": agent.cbf.embed, "hidden": list(agent.cbf.hidden), "state_hidden": agent.cbf.state_hidden,
+                "activation": _activation(agent.cbf.activation), "penalty_max": agent.cbf.penalty_max,
+                "gain_min": agent.cbf.gain_min, "gain_max": agent.cbf.gain_max},
+    }
+    safety = {"method": config.method, "enabled": config.uses_filter,
+              "gain_source": "attention" if config.uses_attention else "fixed", "fixed_gain": config.fixed_gain,
+              "gain_min": config.gain_min, "gain_max": config.gain_max, "penalty_max": config.penalty_max,
+              "margin": config.filter_margin, "drone_radius": ec.cf.collision_radius,
+              "gate_half_opening": ec.gate_half_opening, "gate_bar": ec.gate_bar,
+              "floor_z": bc["floor_z"].default, "neighbour_share": bc["neighbour_share"].default,
+              "rho": fv["rho"].default, "max_iter": fv["max_iter"].default, "tol": fv["tol"].default,
+              "rows": "cylinders M | neighbours n-1 | floor 1 | gate frame 5 (gate rows where a gate is observed)"}
+    return fb.make_manifest(
+        scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
+        env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},
+        course=course, layout=ObsLayout(env.obs_layout.num_cylinders, env.obs_layout.num_neighbours),
+        networks=networks, safety_filter=safety, train_config=json.loads(config_text)["train"],
+        train_config_sha256=hashlib.sha256(config_text.encode()).hexdigest(), source=source,
+        trained_updates=trained_updates)
+
+
+def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Path, *, force: bool = False,
+                  source: str = "", trained_updates: int = 0, config_text: str | None = None,
+                  env: SwarmEnv | None = None) -> Path:
+    """Write the bundle of in-memory ``params`` and ``obs_norm`` (as restored from a checkpoint)."""
+    from aswarm.agents.train import make_env
+
+    env = env or make_env(config)
+    if env.obs_layout.describe() != ObsLayout(env.obs_layout.num_cylinders,
+                                                 env.obs_layout.num_neighbours).describe():
+        raise ValueError("the simulator's observation layout differs from aswarm.flight.observe's: update the flight "
+                         "runtime together with the environment")
+    text = config_text if config_text is not None else config_json(config, env)
+    manifest = build_manifest(config, env, source=source, trained_updates=trained_updates, config_text=text)
+    arrays = policy_arrays(params, obs_norm)
+    out = fb.write_bundle(out_dir, arrays, manifest, force=force)
+    fb.load_bundle(out)  # what the flight side will do: fail here, not at the field
+    return out
+
+
+def export(checkpoint: str | Path, out_dir: str | Path, force: bool = False) -> Path:
+    """Export a run folder's latest checkpoint (or ``"pretrained"``) to the bundle folder ``out_dir``."""
+    from aswarm.agents import evaluate
+
+    out = Path(out_dir)
+    if out.exists() and not force:  # before the slow restore
+        raise fb.BundleError(f"bundle {out} already exists: allowed: a new --out folder, or --force to overwrite it")
+    config, restored = evaluate.load(checkpoint)
+    run_dir = evaluate.PRETRAINED if str(checkpoint) == "pretrained" else Path(checkpoint)
+    cfg_file = run_dir / "config.json"
+    text = cfg_file.read_text() if cfg_file.is_file() else None
+    return export_policy(config, restored["params"], restored["obs_norm"], out, force=force, source=str(checkpoint),
+                         trained_updates=int(restored["update"]), config_text=text)

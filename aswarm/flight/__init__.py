@@ -1,0 +1,26 @@
+"""The flight-side runtime: numpy only, no JAX, flax, MuJoCo or brax.
+
+A policy leaves training as a bundle (``aswarm export``): ``policy.npz`` of plain float32 arrays and
+``manifest.json``. This package loads it and turns mocap poses into velocity setpoints exactly as the
+simulator and the trainer would:
+
+| module | holds |
+|---|---|
+| ``bundle.py`` | load a bundle, check its format, hash and arrays |
+| ``estimator.py`` | velocity and body angular rate from timestamped poses |
+| ``observe.py`` | the observation layout and each drone's observation, as ``SwarmEnv._observe`` builds it |
+| ``policy.py`` | observation normalizer, actor and attention-CBF network (forward passes) |
+| ``cbf.py`` | the CBF safety filter and its QP, as ``aswarm.agents.cbf_filter`` |
+| ``controller.py`` | ``FlightController``: poses in, bounded world-frame velocity setpoints out, with safety checks |
+| ``fly.py`` | ``aswarm fly``: mocap sources, the Crazyflie link (cflib, imported lazily), the flight loop |
+| ``bench.py`` | per-step cost of the runtime |
+
+Every array function takes leading batch axes (worlds, drones), so software-in-the-loop runs many
+episodes at once through the same code that flies.
+"""
+
+from aswarm.flight.bundle import Bundle, BundleError, load_bundle
+from aswarm.flight.controller import Event, FlightController, Obstacles, SafetyConfig, StepResult
+
+__all__ = ["Bundle", "BundleError", "load_bundle", "Event", "FlightController", "Obstacles", "SafetyConfig",
+           "StepResult"]

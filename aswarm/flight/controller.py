@@ -1,0 +1,339 @@
+"""``FlightController``: mocap poses in, bounded world-frame velocity setpoints out.
+
+One :meth:`FlightController.step` per control period (the manifest's rate, 50 Hz for the shipped
+scenarios): check the poses, update the velocity estimates, track each drone's gates (or goal),
+build the observations as the simulator does, run the actor, the attention-CBF gain and the CBF
+safety filter, and clamp. Arrays take leading batch axes (worlds) so that software-in-the-loop
+flies many episodes through this same code.
+
+Safety on bad input (never a NaN, never more than ``max_speed`` per axis):
+- a NaN/Inf or zero-length pose, or none (NaN is how a missing pose is passed): the drone keeps its
+  last good pose for the estimates and gets a hover (zero velocity) command;
+- a pose older than ``stale_after`` s: hover; blind for longer than ``land_after`` s: land request;
+- a drone outside the geofence (the arena box of the manifest, less ``geofence_margin``): land
+  request;
+- a non-finite command (e.g. a corrupted input reaching the networks): hover;
+- a swarm that does not match the bundle (number of drones, gates, more obstacles than the policy
+  observes, an unknown scenario kind): ``ValueError`` at construction, reset or step, because
+  flying it would be unsafe.
+A drone asked to land stays landing (zero velocity here; the flight loop hands it to the
+high-level commander) until :meth:`reset`. Every condition is reported once, when it starts, as an
+:class:`Event`; ``StepResult.hover`` and ``land`` give the state at every step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from aswarm.flight import cbf, estimator, policy
+from aswarm.flight.bundle import Bundle
+from aswarm.flight.observe import gate_crossed, gate_normals, observe
+
+
+@dataclasses.dataclass(frozen=True)
+class SafetyConfig:
+    stale_after: float = 0.1  # s; a newest pose older than this makes the drone hover
+    land_after: float = 0.5  # s; blind (no fresh pose) for longer than this: land request
+    geofence_margin: float = 0.0  # m inside the manifest's arena box (x, y and the ceiling)
+    # A drone that finished (passed its last gate or reached its goal) lands where it is. In the
+    # simulator it leaves the course and is no longer a neighbour; a real one is still in the air
+    # while it descends, so by default the others keep seeing it (SITL turns this off to match
+    # the simulator's episodes).
+    finished_are_neighbours: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("stale_after", "land_after"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"invalid {name}={v!r}: must be a finite number of seconds > 0")
+        if not (np.isfinite(self.geofence_margin) and self.geofence_margin >= 0):
+            raise ValueError(f"invalid geofence_margin={self.geofence_margin!r}: must be a finite number >= 0")
+
+
+@dataclasses.dataclass(frozen=True)
+class Obstacles:
+    """Vertical cylinders seen by mocap: pos [..., M, 2] (m, world xy), radius [..., M] (m).
+
+    vel [..., M, 2] m/s (zero if None); present [..., M] bool (all if None). M may be smaller than the
+    number the policy was trained with (the rest are absent), never larger.
+    """
+
+    pos: np.ndarray
+    radius: np.ndarray
+    vel: np.ndarray | None = None
+    present: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Event:
+    world: int  # index into the flattened batch axes (0 without a batch)
+    drone: int
+    kind: str  # see EVENT_KINDS
+    time: float  # s, the controller's clock
+    detail: str = ""
+
+
+EVENT_KINDS = ("invalid_pose", "stale_pose", "pose_glitch", "geofence", "land", "finished", "nonfinite_command",
+               "filter_unconverged", "obstacle_lost")
+
+
+@dataclasses.dataclass(frozen=True)
+class StepResult:
+    velocity: np.ndarray  # [..., n, 3] world-frame setpoints, m/s, finite and within ±max_speed
+    land: np.ndarray  # [..., n] bool: hand the drone to a landing
+    hover: np.ndarray  # [..., n] bool: the setpoint was forced to zero (blind, landing or bad command)
+    events: list[Event]
+    nominal: np.ndarray  # [..., n, 3] the actor's command before the filter
+    intervened: np.ndarray  # [..., n] bool: the safety filter changed the command
+    gain: np.ndarray  # [..., n] class-K gain used by the filter (1/s)
+    target: np.ndarray  # [..., n] index of each drone's current gate (or 0 for a goal)
+    finished: np.ndarray  # [..., n] bool
+    obs: np.ndarray  # [..., n, D] the observations the policy saw
+
+
+class FlightController:
+    """Runs a bundle's policy and safety filter on mocap poses. See the module docstring for the safety rules."""
+
+    def __init__(self, bundle: Bundle, num_drones: int, *, safety: SafetyConfig = SafetyConfig(),
+                 estimation: estimator.EstimatorConfig = estimator.EstimatorConfig(), scenario: str | None = None):
+        if num_drones != bundle.num_agents:
+            raise ValueError(f"the bundle was trained for {bundle.num_agents} drones, the swarm has {num_drones}: "
+                             "the observation layout and the centralized training do not transfer; export a policy "
+                             f"trained with num_agents={num_drones}")
+        if scenario is not None and scenario != bundle.scenario:
+            raise ValueError(f"the bundle was trained on scenario {bundle.scenario!r}, not {scenario!r}")
+        self.bundle = bundle
+        self.n = num_drones
+        self.safety = safety
+        self.estimation = estimation
+        env = bundle.env
+        self.max_speed = bundle.max_speed
+        self.low = np.array(env["arena_low"], float) + safety.geofence_margin
+        self.high = np.array(env["arena_high"], float) - safety.geofence_margin
+        self.low[2] = -np.inf  # the floor is a barrier of the filter, not a fence (drones start on it)
+        self.num_cylinders = int(env["num_cylinders"])
+        self.num_gates = int(env["num_gates"])
+        self._half_opening = float(env["gate_half_opening"])
+        self._goal_radius = float(env["goal_radius"])
+        self._collision_radius = float(env["collision_radius"])
+        self._lead: tuple[int, ...] | None = None
+
+    # ------------------------------------------------------------------ course
+    def reset(self, gates: np.ndarray | None = None, goals: np.ndarray | None = None) -> None:
+        """Start a flight: gates [..., G, 4] rows (x, y, z, yaw rad) for a track, else goals [..., n, 3] (m).
+
+        Leading axes are worlds (none for one swarm). Clears the estimates, progress and landing state.
+        """
+        kind = self.bundle.kind
+        if kind == "track":
+            if gates is None:
+                raise ValueError(f"scenario kind 'track' needs gates: allowed: an array [..., {self.num_gates}, 4] "
+                                 "of (x, y, z, yaw)")
+            gates = np.asarray(gates, np.float64)
+            if gates.ndim < 2 or gates.shape[-2:] != (self.num_gates, 4) or not np.all(np.isfinite(gates)):
+                raise ValueError(f"invalid gates of shape {gates.shape}: allowed: finite [..., {self.num_gates}, 4] "
+                                 "rows (x, y, z, yaw), as many gates as the policy was trained with")
+            lead = gates.shape[:-2]
+            wp = np.broadcast_to(gates[..., None, :, :3], lead + (self.n, self.num_gates, 3))
+            nrm = np.broadcast_to(gate_normals(gates[..., None, :, 3]), wp.shape)
+            self._gates = gates.reshape((-1, self.num_gates, 4))
+        else:
+            if goals is None:
+                raise ValueError(f"scenario kind {kind!r} needs goals: allowed: an array [..., {self.n}, 3]")
+            goals = np.asarray(goals, np.float64)
+            if goals.ndim < 2 or goals.shape[-2:] != (self.n, 3) or not np.all(np.isfinite(goals)):
+                raise ValueError(f"invalid goals of shape {goals.shape}: allowed: finite [..., {self.n}, 3]")
+            lead = goals.shape[:-2]
+            wp = goals[..., None, :]
+            nrm = np.zeros_like(wp)
+            self._gates = None
+        self._lead = lead
+        B = int(np.prod(lead, dtype=np.int64))
+        self.B = B
+        self._wp = np.array(wp).reshape(B, self.n, -1, 3)
+        self._normals = np.array(nrm).reshape(B, self.n, -1, 3)
+        self._est = estimator.init((B, self.n), self.estimation)
+        self._target = np.zeros((B, self.n), np.int64)
+        self._finished = np.zeros((B, self.n), bool)
+        self._landing = np.zeros((B, self.n), bool)
+        self._obstacles = np.zeros((B, self.num_cylinders, 2))
+        self._known = np.zeros((B, self.num_cylinders), bool)
+        self._flags = np.zeros((len(EVENT_KINDS), B, self.n), bool)
+        self._rows = np.arange(B)[:, None]
+        self._t_reset: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ step
+    def step(self, positions, quats, timestamps, now=None, obstacles: Obstacles | None = None) -> StepResult:
+        """One control step. positions [..., n, 3] (m, world), quats [..., n, 4] (wxyz, body->world),
+        timestamps [..., n] or broadcastable (s, the clock of ``now``); NaN marks a missing pose.
+        ``now`` [...] or scalar (default: the newest timestamp). Returns a :class:`StepResult`.
+        """
+        if self._lead is None:
+            raise ValueError("call reset(gates=... or goals=...) before step")
+        lead, n, B = self._lead, self.n, self.B
+        pos = self._batched(positions, (n, 3), "positions")
+        quat = self._batched(quats, (n, 4), "quats")
+        ts = _shaped(timestamps, lead + (n,), np.float64).reshape(B, n)
+        qn = np.sqrt((quat * quat).sum(-1))
+        valid = np.isfinite(pos).all(-1) & np.isfinite(ts) & (qn > 0.5) & (qn < 2.0)  # NaN compares false
+        # Unit quaternions with w >= 0: q and -q are the same attitude, and the simulator's start at
+        # [1, 0, 0, 0] keeps w > 0 for any attitude a flying drone reaches.
+        scale = np.where(valid, np.where(quat[:, :, 0] < 0, -1.0, 1.0) / np.where(valid, qn, 1.0), 0.0)
+        quat = np.where(valid[:, :, None], quat * scale[:, :, None], 0.0)
+        pos = np.where(valid[:, :, None], pos, 0.0)
+        ts = np.where(valid, ts, -np.inf)
+        if now is None:
+            now_b = np.maximum(ts.max(-1), self._est.t[:, :, -1].max(-1))
+            now_b = np.where(np.isfinite(now_b), now_b, 0.0)
+        else:
+            now_b = _shaped(now, lead, np.float64).reshape(B)
+        if self._t_reset is None:
+            self._t_reset = now_b.copy()
+
+        prev_seen = self._est.count > 0
+        prev_pos = self._est.pos[:, :, -1]
+        self._est, accepted, glitch = estimator.update(self._est, ts, pos, quat, valid, self.estimation)
+        seen = self._est.count > 0
+        t_last, p, q = estimator.latest(self._est)
+        age = now_b[:, None] - np.where(seen, t_last, self._t_reset[:, None])
+        stale = seen & (age > self.safety.stale_after)
+        blind = ~(seen & valid) | glitch | stale
+        fence = seen & ((p < self.low) | (p > self.high)).any(-1)
+
+        # Progress along the course, on fresh poses only (the simulator's crossing test).
+        moved = accepted & prev_seen & ~self._finished
+        if self._gates is not None:
+            k = np.minimum(self._target, self.num_gates - 1)
+            gate = self._gates[self._rows, k]  # [B, n, 4]
+            crossed = moved & gate_crossed(prev_pos, p, gate[..., :3], gate[..., 3], self._half_opening)
+            self._target = self._target + crossed
+            reached = self._target >= self.num_gates
+        else:
+            d = p - self._wp[:, :, 0]
+            reached = moved & ((d * d).sum(-1) < self._goal_radius**2)
+        newly_finished = reached & ~self._finished
+        self._finished |= reached
+        self._landing |= self._finished | fence | (blind & (age > self.safety.land_after))
+
+        cyl_pos, cyl_vel, cyl_radius, cyl_present, lost_obstacles = self._obstacle_arrays(obstacles)
+        vel, ang = estimator.estimate(self._est, self.estimation)
+        flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
+        obs = observe(p, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
+                      cyl_present, self._collision_radius)
+        pol = run_policy(self.bundle, obs)
+
+        u = pol.u
+        nonfinite = ~np.isfinite(u).all(-1)
+        hover = blind | self._landing | nonfinite
+        u = np.clip(np.where(hover[:, :, None], 0.0, u), -self.max_speed, self.max_speed)
+
+        flags = np.stack([~valid, stale, glitch, fence, self._landing, newly_finished, nonfinite,
+                          pol.intervened & ~pol.converged & ~hover, lost_obstacles])
+        start = flags & ~self._flags
+        self._flags = flags
+        events = []
+        if start.any():
+            for kind, w, dr in zip(*np.nonzero(start)):
+                detail = f"pose age {age[w, dr]:.3f} s" if EVENT_KINDS[kind] == "stale_pose" else ""
+                events.append(Event(world=int(w), drone=int(dr), kind=EVENT_KINDS[kind], time=float(now_b[w]),
+                                    detail=detail))
+
+        def out(a):
+            return a.reshape(lead + a.shape[1:])
+
+        return StepResult(velocity=out(u), land=out(self._landing.copy()), hover=out(hover), events=events,
+                          nominal=out(pol.nominal), intervened=out(pol.intervened & ~hover), gain=out(pol.gain),
+                          target=out(self._target.copy()), finished=out(self._finished.copy()), obs=out(obs))
+
+    # ------------------------------------------------------------------ parts
+    def _batched(self, x, tail: tuple[int, ...], name: str) -> np.ndarray:
+        x = np.asarray(x, np.float64)
+        want = self._lead + tail
+        if x.shape != want:
+            raise ValueError(f"{name} has shape {x.shape}: allowed shape is {want}")
+        return x.reshape((self.B,) + tail)
+
+    def _obstacle_arrays(self, obstacles: Obstacles | None):
+        B, M = self.B, self.num_cylinders
+        pos = np.zeros((B, M, 2))
+        vel = np.zeros((B, M, 2))
+        radius = np.zeros((B, M))
+        present = np.zeros((B, M), bool)
+        lost = np.zeros((B, self.n), bool)
+        if obstacles is not None:
+            op = np.asarray(obstacles.pos, np.float64)
+            m = op.shape[-2] if op.ndim >= 2 else -1
+            if op.shape != self._lead + (m, 2) or m < 0:
+                raise ValueError(f"obstacles.pos has shape {op.shape}: allowed shape is {self._lead + (M, 2)} "
+                                 f"(at most {M} cylinders)")
+            if m > M:
+                raise ValueError(f"{m} obstacles but the policy observes at most {M}: flying blind to the others "
+                                 "is unsafe; export a policy trained with more cylinders or remove some")
+            op = op.reshape(B, m, 2)
+            rad = _shaped(obstacles.radius, self._lead + (m,), np.float64).reshape(B, m)
+            ov = (np.zeros((B, m, 2)) if obstacles.vel is None
+                  else _shaped(obstacles.vel, self._lead + (m, 2), np.float64).reshape(B, m, 2))
+            pr = (np.ones((B, m), bool) if obstacles.present is None
+                  else _shaped(obstacles.present, self._lead + (m,), bool).reshape(B, m))
+            if np.any(pr & ~(np.isfinite(rad) & (rad >= 0))):
+                raise ValueError("obstacles.radius must be finite and >= 0 for every present obstacle")
+            good = pr & np.all(np.isfinite(op), -1)
+            # A present obstacle whose pose went missing stays where it was last seen (obstacles
+            # are static or slow); one never seen cannot be avoided: reported to every drone.
+            self._obstacles[:, :m] = np.where(good[..., None], op, self._obstacles[:, :m])
+            self._known[:, :m] |= good
+            use = pr & self._known[:, :m]
+            pos[:, :m] = np.where(use[..., None], self._obstacles[:, :m], 0.0)
+            vel[:, :m] = np.where(good[..., None] & np.isfinite(ov), ov, 0.0)
+            radius[:, :m] = np.where(use, rad, 0.0)
+            present[:, :m] = use
+            lost = np.repeat(np.any(pr & ~good, -1)[:, None], self.n, 1)
+        return pos, vel, radius, present, lost
+
+
+def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray) -> cbf.FilterResult:
+    """The bundle's safety filter on raw observations [..., n, D] and commands [..., n, 3]."""
+    sf = bundle.safety_filter
+    return cbf.filter_from_obs(bundle.layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
+                               float(sf["margin"]), float(sf["gate_half_opening"]), float(sf["gate_bar"]),
+                               rho=float(sf["rho"]), max_iter=int(sf["max_iter"]), tol=float(sf["tol"]),
+                               floor_z=float(sf["floor_z"]), neighbour_share=float(sf["neighbour_share"]))
+
+
+def _shaped(x, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """``x`` as an array of ``shape`` (broadcast only when needed: this runs every control step)."""
+    x = np.asarray(x, dtype)
+    return x if x.shape == shape else np.broadcast_to(x, shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyOutput:
+    nominal: np.ndarray  # [..., n, 3] actor command
+    u: np.ndarray  # [..., n, 3] after the safety filter (= nominal without one)
+    gain: np.ndarray  # [..., n] class-K gain (1/s)
+    intervened: np.ndarray  # [..., n] bool
+    converged: np.ndarray  # [..., n] bool
+
+
+def run_policy(bundle: Bundle, obs: np.ndarray) -> PolicyOutput:
+    """Normalizer, actor, gain and filter on raw observations [..., n, D]: what ``Agent.act`` computes in JAX."""
+    sf, w = bundle.safety_filter, bundle.weights
+    nobs = policy.normalize(w, obs)
+    cmd = policy.actor_command(w, nobs, bundle.max_speed)
+    if sf.get("gain_source") == "attention":
+        gain = policy.cbf_params(w, bundle.layout, nobs, obs, gain_min=float(sf["gain_min"]),
+                                 gain_max=float(sf["gain_max"]), penalty_max=float(sf["penalty_max"]))[1]
+    else:
+        gain = np.full(obs.shape[:-1], float(sf["fixed_gain"]))
+    if not sf["enabled"]:
+        off = np.zeros(obs.shape[:-1], bool)
+        return PolicyOutput(nominal=cmd, u=cmd, gain=gain, intervened=off, converged=~off)
+    res = filter_commands(bundle, obs, cmd, gain)
+    return PolicyOutput(nominal=cmd, u=res.u, gain=gain, intervened=res.intervened, converged=res.converged)
+
+
+def act(bundle: Bundle, obs: np.ndarray) -> np.ndarray:
+    """Deterministic, filtered commands [..., n, 3] from raw observations (``Agent.act``)."""
+    return run_policy(bundle, obs).u

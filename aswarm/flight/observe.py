@@ -1,0 +1,155 @@
+"""Observations in numpy, built exactly as ``aswarm.envs.swarm_env.SwarmEnv._observe`` builds them.
+
+Shapes: leading batch axes ``...`` (worlds), ``n`` drones, ``K`` waypoints, ``M`` cylinders.
+The field tables are copies of the simulator's (that module imports JAX); a test checks they are
+equal, and :func:`aswarm.flight.bundle.load_bundle` checks a bundle's layout against them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+OWN_FIELDS = (
+    ("target_rel", 3, "m, world: drone position minus its current gate centre or goal"),
+    ("target_normal", 3, "unit, world: direction of passage of the current gate (0 for a goal)"),
+    ("next_target_rel", 3, "m, world: drone position minus the following gate (the current one if last)"),
+    ("altitude", 1, "m above the floor"),
+    ("quat", 4, "body->world, [w, x, y, z]"),
+    ("vel", 3, "m/s, world"),
+    ("ang_vel", 3, "rad/s, body"),
+)
+CYL_FIELDS = (
+    ("rel_xy", 2, "m, world: cylinder centre minus drone position"),
+    ("clearance", 1, "m: horizontal gap between drone sphere and cylinder surface"),
+    ("vel_xy", 2, "m/s, world: cylinder velocity"),
+    ("present", 1, "1 if the cylinder exists this episode, else 0 (all its features are 0)"),
+)
+NBR_FIELDS = (
+    ("rel_pos", 3, "m, world: neighbour position minus drone position"),
+    ("rel_vel", 3, "m/s, world: neighbour velocity minus drone velocity"),
+    ("present", 1, "1 if the neighbour is still flying, else 0 (all its features are 0)"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsLayout:
+    """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""
+
+    num_cylinders: int
+    num_neighbours: int
+    own_dim: int = sum(f[1] for f in OWN_FIELDS)
+    cyl_dim: int = sum(f[1] for f in CYL_FIELDS)
+    nbr_dim: int = sum(f[1] for f in NBR_FIELDS)
+
+    @property
+    def size(self) -> int:
+        return self.own_dim + self.num_cylinders * self.cyl_dim + self.num_neighbours * self.nbr_dim
+
+    @property
+    def own_slices(self) -> dict[str, slice]:
+        out, off = {}, 0
+        for name, size, _ in OWN_FIELDS:
+            out[name] = slice(off, off + size)
+            off += size
+        return out
+
+    def split(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """[..., size] -> own [..., own_dim], cylinders [..., M, cyl_dim], neighbours [..., n-1, nbr_dim]."""
+        a = self.own_dim
+        b = a + self.num_cylinders * self.cyl_dim
+        lead = obs.shape[:-1]
+        return (obs[..., :a], obs[..., a:b].reshape(*lead, self.num_cylinders, self.cyl_dim),
+                obs[..., b:].reshape(*lead, self.num_neighbours, self.nbr_dim))
+
+    def describe(self) -> list[dict]:
+        """Field-by-field description with offsets, units and frames (the manifest's ``observation.fields``)."""
+        out, off = [], 0
+        for group, fields, count in (("own", OWN_FIELDS, 1), ("cylinder", CYL_FIELDS, self.num_cylinders),
+                                     ("neighbour", NBR_FIELDS, self.num_neighbours)):
+            for k in range(count):
+                for name, size, unit in fields:
+                    out.append(dict(group=group, index=k, name=name, offset=off, size=size, meaning=unit))
+                    off += size
+        return out
+
+
+def others(n: int) -> np.ndarray:
+    """[n, n - 1] indices of every drone's neighbours, in the simulator's order."""
+    return np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.intp).reshape(n, n - 1)
+
+
+def gate_normals(gate_yaw: np.ndarray) -> np.ndarray:
+    """[..., G] yaw (rad) -> [..., G, 3] horizontal unit directions of passage."""
+    return np.stack([np.cos(gate_yaw), np.sin(gate_yaw), np.zeros_like(gate_yaw)], -1)
+
+
+def cylinders_at(center, axis, amplitude, omega, phase, t) -> tuple[np.ndarray, np.ndarray]:
+    """Cylinder centres and velocities [..., M, 2] at time ``t`` [...] (as ``scenarios.cylinders_at``)."""
+    arg = omega * np.asarray(t)[..., None] + phase
+    pos = center + axis * (amplitude * np.sin(arg))[..., None]
+    vel = axis * (amplitude * omega * np.cos(arg))[..., None]
+    return pos, vel
+
+
+def observe(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, ang_vel: np.ndarray, waypoints: np.ndarray,
+            normals: np.ndarray, target: np.ndarray, flying: np.ndarray, cyl_pos: np.ndarray, cyl_vel: np.ndarray,
+            cyl_radius: np.ndarray, cyl_present: np.ndarray, collision_radius: float) -> np.ndarray:
+    """Every drone's observation [..., n, D].
+
+    pos, vel, ang_vel [..., n, 3] (world m, world m/s, body rad/s); quat [..., n, 4] wxyz;
+    waypoints [..., n, K, 3] each drone's gate centres in order (or its goal, K = 1);
+    normals [..., n, K, 3] the gates' directions of passage (0 for goals); target [..., n] int index of
+    the current waypoint (may be K when finished); flying [..., n] bool (a drone that finished or was
+    lost is not a neighbour); cyl_pos, cyl_vel [..., M, 2]; cyl_radius [..., M]; cyl_present [..., M] bool.
+    """
+    n = pos.shape[-2]
+    K = waypoints.shape[-2]
+    k = np.minimum(target, K - 1).reshape(-1)
+    k_next = np.minimum(k + 1, K - 1)
+    full = pos.shape[:-1] + (K, 3)
+    wp = (waypoints if waypoints.shape == full else np.broadcast_to(waypoints, full)).reshape(-1, K, 3)
+    rows = np.arange(wp.shape[0])
+
+    def pick(a, i):
+        return a[rows, i].reshape(pos.shape)
+
+    nrm = (normals if normals.shape == full else np.broadcast_to(normals, full)).reshape(-1, K, 3)
+    own = np.concatenate([pos - pick(wp, k), pick(nrm, k), pos - pick(wp, k_next), pos[..., 2:3],
+                          quat, vel, ang_vel], -1)
+
+    rel = cyl_pos[..., None, :, :] - pos[..., :, None, :2]  # [..., n, M, 2]
+    gap = np.linalg.norm(rel, axis=-1) - cyl_radius[..., None, :] - collision_radius
+    cyl = np.empty(rel.shape[:-1] + (6,))
+    cyl[..., 0:2] = rel
+    cyl[..., 2] = gap
+    cyl[..., 3:5] = cyl_vel[..., None, :, :]
+    cyl[..., 5] = 1.0
+    cyl *= cyl_present[..., None, :, None]
+
+    idx = others(n)
+    nbr = np.concatenate([pos[..., idx, :] - pos[..., :, None, :], vel[..., idx, :] - vel[..., :, None, :],
+                          np.ones(pos.shape[:-2] + idx.shape + (1,))], -1)
+    nbr = np.where(flying[..., idx][..., None], nbr, 0.0)
+    lead = pos.shape[:-2]
+    return np.concatenate([own, cyl.reshape(*lead, n, -1), nbr.reshape(*lead, n, -1)], -1)
+
+
+def gate_crossed(p_prev: np.ndarray, p_new: np.ndarray, gate_pos: np.ndarray, gate_yaw: np.ndarray,
+                 half_opening: float) -> np.ndarray:
+    """[...] true where the move p_prev -> p_new [..., 3] crosses the gate [..., 3], yaw [...] forwards, inside.
+
+    The simulator's test (``collisions.gate_crossed``): the segment crosses the gate plane in the
+    direction of passage and the crossing point lies inside the square opening.
+    """
+    normal = gate_normals(gate_yaw)
+    s0 = np.sum((p_prev - gate_pos) * normal, -1)
+    s1 = np.sum((p_new - gate_pos) * normal, -1)
+    forward = (s0 < 0) & (s1 >= 0)
+    if not forward.any():  # the common case, every control step: nothing more to compute
+        return forward
+    frac = s0 / np.where(forward, s0 - s1, 1.0)
+    hit = p_prev + frac[..., None] * (p_new - p_prev) - gate_pos
+    lateral = hit[..., 0] * -normal[..., 1] + hit[..., 1] * normal[..., 0]
+    return forward & (np.abs(lateral) < half_opening) & (np.abs(hit[..., 2]) < half_opening)

@@ -1,0 +1,188 @@
+"""``aswarm sitl``: the numpy flight runtime in closed loop against the MJX simulator.
+
+The runtime (:class:`aswarm.flight.FlightController`, the very code that flies) sees what a mocap
+system would give it: drone positions and attitudes with timestamps, optionally with Gaussian
+position noise and a latency of whole control steps, the cylinders' poses and the course (gates or
+goals). It estimates velocities itself, tracks its own gate progress, runs the policy and the
+filter, and its setpoints drive ``env.step``. Episodes run vmapped and jitted over worlds, as
+``aswarm eval`` runs them, from the same keys (so the same layouts for the same seed), and the
+report has the same metrics.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from aswarm import config_args, envs
+from aswarm.agents import evaluate
+from aswarm.envs.dynamics import drone_state
+from aswarm.envs.scenarios import cylinders_at
+from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle
+from aswarm.flight.estimator import EstimatorConfig
+
+
+class Sensed(NamedTuple):
+    """What leaves the simulator each step ([B, ...] over worlds)."""
+
+    pos: jax.Array  # [B, n, 3]
+    quat: jax.Array  # [B, n, 4] wxyz
+    time: jax.Array  # [B] s
+    cyl_pos: jax.Array  # [B, M, 2]
+    cyl_vel: jax.Array  # [B, M, 2]
+    done: jax.Array  # [B]
+    metrics: dict
+
+
+class Simulator(NamedTuple):
+    env: envs.SwarmEnv
+    reset: callable  # key -> (state, Sensed)
+    step: callable  # (state, action [B, n, 3]) -> (state, Sensed)
+
+
+@functools.lru_cache(maxsize=4)
+def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
+    """Jitted, vmapped reset and step of ``episodes`` worlds (cached: tests and repeated runs compile once)."""
+    env = envs.SwarmEnv(config)
+    n = env.num_agents
+
+    def sense(s: envs.State) -> Sensed:
+        d = jax.vmap(lambda data: drone_state(data, n))(s.data)
+        cyl_pos, cyl_vel = jax.vmap(cylinders_at)(s.layout, s.data.time)
+        return Sensed(d.pos, d.quat, s.data.time, cyl_pos, cyl_vel, s.done, s.metrics)
+
+    @jax.jit
+    def reset(key):
+        s = jax.vmap(env.reset)(jax.random.split(key, episodes))
+        return s, sense(s)
+
+    @jax.jit
+    def step(s, action):
+        s = jax.vmap(env.step)(s, action)
+        return s, sense(s)
+
+    return Simulator(env, reset, step)
+
+
+def make_env(bundle: Bundle, scenario: str | None = None, env_overrides: list[str] | dict | None = None):
+    """The bundle's training environment (its env overrides, then ``env_overrides``), checked against the bundle."""
+    trained = bundle.manifest["scenario"]["env_overrides"]
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in trained.items()}
+    if isinstance(env_overrides, dict):
+        overrides.update(env_overrides)
+    else:
+        overrides.update(config_args.parse_assignments(env_overrides or [], envs.EnvConfig))
+    env = envs.make(scenario or bundle.scenario, **overrides)
+    if env.num_agents != bundle.num_agents or env.obs_layout.describe() != bundle.layout.describe():
+        raise ValueError(f"the bundle was trained on {bundle.scenario!r} with {bundle.num_agents} drones and "
+                         f"observations of size {bundle.layout.size}; scenario {env.config.scenario!r} has "
+                         f"{env.num_agents} drones and size {env.observation_size}: the observation layout does not "
+                         "transfer")
+    return env
+
+
+def course(bundle: Bundle, layout) -> dict:
+    """reset() arguments of the controller from a batch of simulator layouts (host arrays)."""
+    if bundle.kind == "track":
+        return {"gates": np.concatenate([layout.gate_pos, layout.gate_yaw[..., None]], -1)}
+    return {"goals": layout.waypoints[:, :, 0]}
+
+
+def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = 10_000,
+             noise: float = 0.0, latency: int = 0, env_overrides: list[str] | dict | None = None,
+             estimation: EstimatorConfig = EstimatorConfig(), progress: bool = False) -> dict:
+    """Fly ``episodes`` episodes; returns ``aswarm eval``'s metrics plus the runtime's own statistics.
+
+    noise: standard deviation (m) of the Gaussian noise added to every position the runtime sees;
+    latency: the runtime sees the poses (and obstacles) of ``latency`` control steps ago.
+    """
+    if episodes <= 0:
+        raise ValueError(f"invalid episodes={episodes}: must be > 0")
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"invalid noise={noise!r}: must be a finite number of metres >= 0")
+    if not isinstance(latency, int) or latency < 0:
+        raise ValueError(f"invalid latency={latency!r}: must be an integer number of control steps >= 0")
+    b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
+    env = make_env(b, scenario, env_overrides)
+    cfg = env.config
+    sim = simulator(cfg, episodes)
+    state, sensed = sim.reset(jax.random.PRNGKey(seed))
+    layout = jax.device_get(state.layout)
+    # A pose is fresh for the controller if it is at most `latency` steps old: the stale limit
+    # grows with the configured latency, or every drone would hover.
+    safety = SafetyConfig(stale_after=max(0.1, (latency + 1.5) * cfg.dt), land_after=max(0.5, (latency + 5) * cfg.dt),
+                          finished_are_neighbours=False)
+    ctl = FlightController(b, env.num_agents, safety=safety, estimation=estimation)
+    ctl.reset(**course(b, layout))
+    rng = np.random.default_rng(seed)
+    seen = collections.deque(maxlen=latency + 1)
+    n = env.num_agents
+    ended = np.zeros(episodes, bool)
+    rec: dict | None = None
+    interventions = flying = 0.0
+    runtime = 0.0
+    steps = 0
+    events = collections.Counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.max_steps, unit="step", dynamic_ncols=True)
+    for k in range(cfg.max_steps + 1):
+        host = jax.device_get(sensed)
+        done = np.asarray(host.done) > 0
+        metrics = {name: np.asarray(v) for name, v in host.metrics.items()}
+        if rec is None:
+            rec = {name: np.zeros_like(v) for name, v in metrics.items()}
+        first = done & ~ended
+        for name, v in metrics.items():
+            rec[name] = np.where(first, v, rec[name])
+        ended |= first
+        if k == cfg.max_steps or ended.all():
+            break
+        seen.append(host)
+        old = seen[0]  # `latency` steps ago (the oldest there is at the start)
+        pos = np.asarray(old.pos, np.float64)
+        if noise > 0:
+            pos = pos + rng.normal(0.0, noise, pos.shape)
+        t0 = time.perf_counter()
+        out = ctl.step(pos, old.quat, np.asarray(old.time)[:, None], now=np.asarray(host.time),
+                       obstacles=Obstacles(pos=old.cyl_pos, radius=layout.cyl_radius, vel=old.cyl_vel,
+                                           present=layout.cyl_present))
+        runtime += time.perf_counter() - t0
+        steps += 1
+        live = ~ended
+        interventions += float(np.sum(out.intervened[live]))
+        flying += float(np.sum(live)) * n
+        events.update(e.kind for e in out.events if live[e.world])
+        state, sensed = sim.step(state, jnp.asarray(out.velocity, jnp.float32))
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    result = {"checkpoint": str(b.path), "method": b.safety_filter["method"], "scenario": cfg.scenario,
+              "episodes": episodes, "seed": seed, "trained_updates": int(b.manifest["source"]["trained_updates"]),
+              "env_overrides": sorted(env_overrides or []) if not isinstance(env_overrides, dict)
+              else sorted(f"{k}={v}" for k, v in env_overrides.items()),
+              "episodes_ended": int(ended.sum())}
+    result.update(evaluate.summarize(rec, interventions / max(flying, 1.0)))
+    result.update(noise=noise, latency=latency, control_steps=steps,
+                  runtime_ms_per_step=1e3 * runtime / max(steps, 1), events=dict(sorted(events.items())))
+    return result
+
+
+def format_table(r: dict) -> str:
+    lines = [evaluate.format_table(r).replace(" episodes (seed", " SITL episodes (seed", 1)]
+    lines.append(f"  {'position noise':24s} {r['noise']:8.3f} m")
+    lines.append(f"  {'latency':24s} {r['latency']:8d} steps")
+    lines.append(f"  {'runtime per step':24s} {r['runtime_ms_per_step']:8.3f} ms  (all {r['episodes']} worlds)")
+    shown = ", ".join(f"{k} {v}" for k, v in r["events"].items()) or "none"
+    lines.append(f"  {'runtime events':24s} {shown}")
+    return "\n".join(lines)

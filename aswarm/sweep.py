@@ -1,0 +1,635 @@
+"""Hyperparameter sweeps: every configuration x seed of a sweep file trained inside one ``jit``.
+
+A sweep file (TOML) names the scenario, the budget, the seeds and a ``[grid]`` or ``[random]``
+search. Configurations that differ only in value-only hyperparameters (``hparams.VALUE_FIELDS``:
+learning rates, clip, GAE lambda, gamma, loss coefficients, cost limit, CBF gain and penalty bounds)
+share one compiled program, vmapped over configurations and seeds. Any other field (network sizes,
+number of worlds, method, ``env.*`` fields such as reward weights, which the environment bakes into
+its code) starts a new group with its own compile.
+
+``OUT/`` holds ``sweep.json`` (the plan), ``groups/gN/checkpoints`` (the stacked state, for resuming),
+one run folder per trial in ``trials/`` (``config.json``, ``metrics.jsonl``, ``checkpoints/``,
+``curves.png``: ``aswarm eval --checkpoint OUT/trials/c00-s0`` reads it), and the reports
+``results.csv``, ``results.json``, ``report.md`` and ``curves.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import itertools
+import json
+import math
+import time
+import tomllib
+import typing
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from aswarm import config_args
+from aswarm.agents import hparams
+from aswarm.agents.config import TrainConfig
+
+TOP_KEYS = ("name", "scenario", "method", "total_steps", "seeds", "last_updates", "sample_seed", "fixed", "grid",
+            "random")
+# Set once for the whole sweep, at the top level of the file.
+NOT_SWEPT = ("scenario", "seed", "total_steps", "env_overrides")
+RANK_METRICS = ("success", "collision", "episode_return")
+
+
+@dataclasses.dataclass(frozen=True)
+class Trial:
+    name: str  # run folder name, c{config}-s{seed}
+    config_index: int
+    config: TrainConfig  # with its seed
+
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """Trials that share one compiled program: they differ only in ``sweep_fields`` and seeds."""
+
+    index: int
+    trials: tuple[Trial, ...]
+    sweep_fields: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    configs: tuple[TrainConfig, ...]  # one per point of the search, seed 0
+    labels: tuple[str, ...]  # what each configuration sets, e.g. "actor_lr=0.001 gamma=0.9"
+    points: tuple[dict, ...]  # the searched values of each configuration
+    seeds: tuple[int, ...]
+    last_updates: int  # final metrics: episode-weighted mean over this many last updates
+    source: str  # the file's text, to recognise the sweep on resume
+
+    @property
+    def trials(self) -> tuple[Trial, ...]:
+        return tuple(Trial(f"c{i:02d}-s{s}", i, dataclasses.replace(c, seed=s))
+                     for i, c in enumerate(self.configs) for s in self.seeds)
+
+
+# --- the sweep file -------------------------------------------------------------------------------------
+
+
+def _types() -> tuple[dict, dict]:
+    """Field types of TrainConfig and of EnvConfig's plain fields (its nested dataclasses are not sweepable)."""
+    from aswarm import envs
+
+    env = {k: t for k, t in config_args.field_types(envs.EnvConfig).items()
+           if t in (bool, int, float, str) or typing.get_origin(t) is tuple}
+    return config_args.field_types(TrainConfig), env
+
+
+def _coerce(where: str, kind, value):
+    """``value`` as a field of type ``kind``; a one-line ValueError naming it and what is allowed."""
+    def fail(allowed: str):
+        raise ValueError(f"{where}: invalid value {value!r} ({type(value).__name__}); allowed: {allowed}")
+
+    if kind is bool:
+        return value if isinstance(value, bool) else fail("true or false")
+    if kind is int:
+        return value if isinstance(value, int) and not isinstance(value, bool) else fail("an integer")
+    if kind is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        fail("a finite number")
+    if kind is str:
+        return value if isinstance(value, str) else fail("a string")
+    if typing.get_origin(kind) is tuple:
+        if not isinstance(value, list):
+            fail("a list")
+        inner = typing.get_args(kind)
+        inner = inner[0] if inner[-1] is Ellipsis else None
+        if inner is None:
+            fail("nothing: this field is not sweepable")
+        return tuple(_coerce(where, inner, v) for v in value)
+    fail("nothing: this field is not sweepable")
+
+
+def _field(where: str, key: str, train_types: dict, env_types: dict):
+    """(is_env, name, type) of a sweep key: a TrainConfig field or ``env.FIELD``."""
+    if key.startswith("env."):
+        name = key[4:]
+        if name not in env_types or name == "scenario":
+            raise ValueError(f"{where}: unknown env field {name!r}; allowed: "
+                             f"{', '.join(sorted(k for k in env_types if k != 'scenario'))}")
+        return True, name, env_types[name]
+    if key not in train_types or key in NOT_SWEPT:
+        allowed = sorted(k for k in train_types if k not in NOT_SWEPT)
+        hint = {"seed": " (give seeds = [...] at the top level)", "scenario": " (set it at the top level)",
+                "total_steps": " (set it at the top level)"}.get(key, "")
+        raise ValueError(f"{where}: unknown field {key!r}{hint}; allowed: {', '.join(allowed)} or env.FIELD")
+    return False, key, train_types[key]
+
+
+def _flatten_env(table: dict) -> dict:
+    """TOML ``env.x = ...`` (a nested table) and ``"env.x" = ...`` both become the key ``"env.x"``."""
+    out = {k: v for k, v in table.items() if k != "env"}
+    env = table.get("env", {})
+    if not isinstance(env, dict):
+        raise ValueError(f"invalid env = {env!r}: allowed: a table of env fields (env.FIELD = ...)")
+    out.update({f"env.{k}": v for k, v in env.items()})
+    return out
+
+
+def _table(data: dict, key: str, name: str) -> dict:
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise ValueError(f"sweep {name}: invalid {key} = {value!r}; allowed: a table [{key}]")
+    return _flatten_env(value)
+
+
+def _random_points(name: str, table: dict, seed: int, types: tuple[dict, dict]) -> list[dict]:
+    samples = table.pop("samples", None)
+    if not isinstance(samples, int) or isinstance(samples, bool) or samples < 1:
+        raise ValueError(f"sweep {name}: [random] invalid samples = {samples!r}; allowed: an integer >= 1")
+    if not table:
+        raise ValueError(f"sweep {name}: [random] is empty; allowed: FIELD = [choices] or FIELD = {{low, high, log}}")
+    rng = np.random.default_rng(seed)
+    draws = {}
+    for key, spec in table.items():
+        where = f"sweep {name}: [random] {key}"
+        _, _, kind = _field(where, key, *types)
+        if isinstance(spec, list):
+            if not spec:
+                raise ValueError(f"{where}: empty list of choices; allowed: one value or more")
+            choices = [_coerce(where, kind, v) for v in spec]
+            draws[key] = [choices[i] for i in rng.integers(len(choices), size=samples)]
+        elif isinstance(spec, dict):
+            if kind is not float:
+                raise ValueError(f"{where}: a range needs a float field; allowed here: a list of choices")
+            extra = set(spec) - {"low", "high", "log"}
+            if extra or "low" not in spec or "high" not in spec:
+                raise ValueError(f"{where}: invalid range {spec!r}; allowed keys: low, high, log")
+            lo, hi = _coerce(where, float, spec["low"]), _coerce(where, float, spec["high"])
+            log = _coerce(where, bool, spec.get("log", False))
+            if not lo < hi or (log and lo <= 0):
+                raise ValueError(f"{where}: invalid range low={lo}, high={hi}; need low < high"
+                                 + (" and low > 0 for log = true" if log else ""))
+            u = rng.uniform(size=samples)
+            vals = np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))) if log else lo + u * (hi - lo)
+            draws[key] = [float(v) for v in vals]
+        else:
+            raise ValueError(f"{where}: invalid {spec!r}; allowed: a list of choices or {{low, high, log}}")
+    return [{k: draws[k][i] for k in draws} for i in range(samples)]
+
+
+def _grid_points(name: str, table: dict, types: tuple[dict, dict]) -> list[dict]:
+    if not table:
+        raise ValueError(f"sweep {name}: [grid] is empty; allowed: FIELD = [value, ...] for one field or more")
+    lists = {}
+    for key, values in table.items():
+        where = f"sweep {name}: [grid] {key}"
+        _, _, kind = _field(where, key, *types)
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"{where}: invalid {values!r}; allowed: a non-empty list of values")
+        lists[key] = [_coerce(where, kind, v) for v in values]
+    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
+
+
+def _label(point: dict) -> str:
+    def fmt(v):
+        return f"{v:.3g}" if isinstance(v, float) else ",".join(map(str, v)) if isinstance(v, tuple) else str(v)
+
+    return " ".join(f"{k}={fmt(v)}" for k, v in point.items()) or "base"
+
+
+def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
+    """A parsed TOML document -> SweepSpec; every error is a one-line ValueError, raised before any compile."""
+    from aswarm import envs
+
+    types = _types()
+    unknown = sorted(set(data) - set(TOP_KEYS))
+    if unknown:
+        raise ValueError(f"sweep {name}: unknown key {unknown[0]!r}; allowed: {', '.join(TOP_KEYS)}")
+    name = data.get("name", name)
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"sweep: invalid name = {name!r}; allowed: a non-empty string")
+    top = {}
+    for key, kind, required in (("scenario", str, True), ("total_steps", int, True), ("method", str, False),
+                                ("last_updates", int, False), ("sample_seed", int, False)):
+        if key not in data:
+            if required:
+                raise ValueError(f"sweep {name}: missing {key} = ...; a sweep needs scenario, total_steps and seeds")
+            continue
+        top[key] = _coerce(f"sweep {name}: {key}", kind, data[key])
+    seeds = data.get("seeds")
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0
+                                                            for s in seeds):
+        raise ValueError(f"sweep {name}: invalid seeds = {seeds!r}; allowed: a non-empty list of integers >= 0")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"sweep {name}: invalid seeds = {seeds!r}; allowed: distinct integers")
+    last_updates = top.pop("last_updates", 5)
+    if last_updates < 1:
+        raise ValueError(f"sweep {name}: invalid last_updates = {last_updates}; allowed: an integer >= 1")
+    sample_seed = top.pop("sample_seed", 0)
+
+    fixed = {}
+    for key, value in _table(data, "fixed", name).items():
+        where = f"sweep {name}: [fixed] {key}"
+        fixed[key] = _coerce(where, _field(where, key, *types)[2], value)
+    has_grid, has_random = "grid" in data, "random" in data
+    if has_grid == has_random:
+        raise ValueError(f"sweep {name}: needs exactly one of [grid] or [random]; found "
+                         f"{'both' if has_grid else 'neither'}")
+    if has_grid:
+        points = _grid_points(name, _table(data, "grid", name), types)
+    else:
+        points = _random_points(name, _table(data, "random", name), sample_seed, types)
+    for key in points[0]:
+        if key in fixed:
+            raise ValueError(f"sweep {name}: {key!r} is both fixed and searched; allowed: one of the two")
+
+    configs, labels, checked_envs = [], [], {}
+    for point in points:
+        values = {**top, **fixed, **point}
+        train = {k: v for k, v in values.items() if not k.startswith("env.")}
+        env_over = tuple(sorted((k[4:], v) for k, v in values.items() if k.startswith("env.")))
+        label = _label(point)
+        try:
+            cfg = TrainConfig(**train, env_overrides=env_over)
+            if (cfg.scenario, env_over) not in checked_envs:  # builds the model only: no compile
+                checked_envs[(cfg.scenario, env_over)] = envs.make(cfg.scenario, **dict(env_over))
+        except ValueError as e:
+            raise ValueError(f"sweep {name}: configuration {label}: {e}") from None
+        configs.append(cfg)
+        labels.append(label)
+    return SweepSpec(name=name, configs=tuple(configs), labels=tuple(labels), points=tuple(points),
+                     seeds=tuple(seeds), last_updates=last_updates, source=source)
+
+
+def load(path: str | Path) -> SweepSpec:
+    """Read and check a sweep file; a ValueError (before anything compiles) when it is bad."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"invalid sweep file {str(path)!r}: not a file; allowed: a TOML sweep file")
+    text = path.read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"invalid sweep file {str(path)!r}: not valid TOML: {e}") from None
+    return parse(data, path.stem, text)
+
+
+def groups(spec: SweepSpec) -> tuple[Group, ...]:
+    """Trials grouped by everything but the value-only hyperparameters: one compile per group."""
+    defaults = TrainConfig()
+    blank = {f: getattr(defaults, f) for f in hparams.VALUE_FIELDS}
+    by_key: dict = {}
+    for t in spec.trials:
+        by_key.setdefault(dataclasses.replace(t.config, seed=0, **blank), []).append(t)
+    return tuple(Group(i, tuple(ts), hparams.varying([t.config for t in ts])) for i, ts in enumerate(by_key.values()))
+
+
+# --- training -------------------------------------------------------------------------------------------
+
+
+def _programs(group: Group, mesh=None):
+    """(agent, jitted init, jitted chunk, keys, values, mesh) of a group, laid out over ``mesh`` (default: all
+    devices)."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from aswarm.agents import sharding
+    from aswarm.agents.train import make_train
+
+    base = group.trials[0].config
+    k = len(group.trials)
+    mesh = mesh or sharding.make_mesh(k, base.num_envs)
+    agent, init, chunk, _ = make_train(base, group.sweep_fields, shard_rows=sharding.rows_constraint(mesh))
+
+    def vinit(keys, values):
+        # A loop, not vmap: batching the orthogonal initializers' QR over trials made XLA's batched LAPACK
+        # call deadlock on the 2-thread CPU pool (as batched Cholesky did, shared/crazyflie.md).
+        return jax.lax.map(lambda a: init(*a), (keys, values))
+
+    def vchunk(ts, n: int):
+        return jax.vmap(lambda s: chunk(s, n), spmd_axis_name="trial")(ts)
+
+    keys = np.stack([np.asarray(jax.random.PRNGKey(t.config.seed)) for t in group.trials])
+    values = hparams.stack([t.config for t in group.trials], group.sweep_fields)
+    like = jax.eval_shape(vinit, keys, values)
+    init_fn, chunk_fn = sharding.sharded_fns(vinit, vchunk, like, mesh, stacked=True)
+    lead = NamedSharding(mesh, P("trial"))
+    return agent, init_fn, chunk_fn, sharding.put(keys, lead), sharding.put(values, lead), mesh
+
+
+def _finite_rows(tree) -> np.ndarray:
+    """[K] whether every float leaf of trial k is finite."""
+    ok = None
+    for x in jax.tree.leaves(tree):
+        x = np.asarray(x)
+        if np.issubdtype(x.dtype, np.floating) and x.size:
+            f = np.isfinite(x).reshape(x.shape[0], -1).all(-1)
+            ok = f if ok is None else ok & f
+    return ok
+
+
+def _truncate(path: Path, update: int) -> None:
+    if path.exists():
+        rows = [r for r in path.read_text().splitlines() if r and json.loads(r)["update"] <= update]
+        path.write_text("".join(r + "\n" for r in rows))
+
+
+def _run_group(spec: SweepSpec, group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
+               log: Callable[[str], None]) -> dict:
+    """Train one group to its budget (or ``max_updates`` more); returns its timing and whether it finished."""
+    from tqdm import tqdm
+
+    from aswarm.agents import checkpoint, runner, sharding
+
+    gdir = out / "groups" / f"g{group.index}"
+    done_file = gdir / "done.json"
+    if done_file.exists():
+        log(f"group {group.index}: finished earlier, skipped")
+        return json.loads(done_file.read_text())
+    primary = jax.process_index() == 0
+    base = group.trials[0].config
+    t0 = time.monotonic()
+    agent, init_fn, chunk_fn, keys, values, mesh = _programs(group, mesh)
+    log(f"group {group.index}: {len(group.trials)} trials in one program, swept {list(group.sweep_fields) or 'seeds'}"
+        f"; {sharding.describe(mesh)}")
+    ts = init_fn(keys, values)
+    shardings = sharding.state_shardings(mesh, ts, stacked=True)
+    mngr = checkpoint.manager(gdir)
+    tdirs = [out / "trials" / t.name for t in group.trials]
+    if mngr.latest_step() is not None:
+        # Restored on the host, then laid out again: the same on one device, many, or many hosts.
+        restored = checkpoint.restore(mngr, sharding.fetch(ts))
+        ts = jax.tree.map(lambda x, s: sharding.put(x, s), restored, shardings)
+        log(f"group {group.index}: resumed at update {int(np.asarray(restored.update)[0])}")
+    start = int(sharding.fetch(ts.update)[0])
+    if primary:
+        for t, d in zip(group.trials, tdirs):
+            d.mkdir(parents=True, exist_ok=True)
+            runner.write_config(d, t.config, agent.env.config)
+            _truncate(d / "metrics.jsonl", start)
+    total = base.num_updates
+    stop = total if max_updates is None else min(total, start + max_updates)
+    bar = tqdm(total=total, initial=start, unit="upd", disable=not (progress and primary), dynamic_ncols=True,
+               desc=f"group {group.index}")
+    last_save, update = time.monotonic(), start
+    try:
+        while update < stop:
+            k = min(base.updates_per_chunk, stop - update)
+            ts, metrics = chunk_fn(ts, k)
+            metrics = sharding.fetch(metrics)  # {name: [K, k]}
+            update += k
+            if primary:
+                for i, d in enumerate(tdirs):
+                    with (d / "metrics.jsonl").open("a") as f:
+                        for j in range(k):
+                            row = {name: float(v[i, j]) for name, v in metrics.items()}
+                            u = update - k + j + 1
+                            row.update(update=u, env_steps=u * base.steps_per_update)
+                            f.write(json.dumps(row) + "\n")
+            success = np.asarray(metrics["episode/success"])[:, -1]
+            bar.set_postfix(best_success=f"{np.nanmax(success):.2f}")
+            bar.update(k)
+            now = time.monotonic()
+            if update >= stop or now - last_save > 60 * base.checkpoint_minutes:
+                checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
+                last_save = now
+    finally:
+        bar.close()
+    result = {"group": group.index, "trials": [t.name for t in group.trials], "sweep_fields": group.sweep_fields,
+              "updates": update, "finished": update >= total, "wall_s": time.monotonic() - t0,
+              "devices": int(mesh.devices.size)}
+    if update < total:
+        return result
+    final = sharding.fetch(ts)
+    finite = _finite_rows(final.params)
+    for i, d in enumerate(tdirs):
+        # The trial's own config holds its values: saved without hparams, the checkpoint is a plain run's,
+        # so `aswarm eval`, `aswarm export` and `aswarm train --resume` read it.
+        trial_state = sharding.for_checkpoint(hparams.index(final, i).replace(hparams={}))
+        checkpoint.save(checkpoint.manager(d), update, trial_state)
+        if primary:
+            runner.plot_curves(d)
+            if not finite[i]:
+                (d / "DIVERGED").write_text("parameters became NaN/Inf\n")
+    if primary:
+        done_file.write_text(json.dumps(result))
+    return result
+
+
+def _check_plan(spec: SweepSpec, out: Path) -> None:
+    plan = out / "sweep.json"
+    payload = {"name": spec.name, "source": spec.source, "trials": [t.name for t in spec.trials],
+               "labels": list(spec.labels)}
+    if plan.exists():
+        if json.loads(plan.read_text()).get("source") != spec.source:
+            raise ValueError(f"invalid --out {str(out)!r}: it holds a different sweep; allowed: the same sweep file "
+                             "(to resume) or a new folder")
+        return
+    if jax.process_index() == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        plan.write_text(json.dumps(payload, indent=2))
+
+
+def run(spec: SweepSpec, out: str | Path, progress: bool = True, max_updates: int | None = None, mesh=None,
+        log: Callable[[str], None] = print) -> dict | None:
+    """Train every trial of ``spec`` into ``out`` (resuming what is there); returns the results, or None when
+    ``max_updates`` (updates per group in this call, for tests) stopped it early."""
+    from aswarm.agents import sharding
+
+    out = Path(out)
+    if jax.process_index() != 0:  # several hosts: one of them reports
+        log = lambda _: None  # noqa: E731
+    gs = groups(spec)
+    for g in gs:  # fail before compiling anything
+        if mesh is None:
+            sharding.make_mesh(len(g.trials), g.trials[0].config.num_envs)
+    _check_plan(spec, out)
+    timings = [_run_group(spec, g, out, progress, max_updates, mesh, log) for g in gs]
+    if not all(t["finished"] for t in timings):
+        return None
+    results = summarize(spec, out)
+    results["groups"] = timings
+    if jax.process_index() == 0:
+        write_reports(results, out)
+    return results
+
+
+# --- results --------------------------------------------------------------------------------------------
+
+
+def read_rows(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / "metrics.jsonl"
+    return [json.loads(r) for r in path.read_text().splitlines() if r] if path.exists() else []
+
+
+def final_metrics(rows: list[dict], last: int) -> dict:
+    """Success, collision and return over the last ``last`` updates, weighted by the episodes that ended."""
+    tail = rows[-last:]
+    eps = np.array([r["episodes"] for r in tail], float)
+    out = {}
+    for m in RANK_METRICS:
+        v = np.array([r[f"episode/{m}"] for r in tail], float)
+        out[m] = float(np.sum(v * eps) / np.sum(eps)) if eps.sum() > 0 else math.nan
+    return out
+
+
+def _stats(xs: Sequence[float]) -> dict:
+    a = np.asarray(xs, float)
+    ok = a[np.isfinite(a)]
+    if not ok.size:
+        return {"mean": math.nan, "std": math.nan, "min": math.nan, "max": math.nan}
+    return {"mean": float(ok.mean()), "std": float(ok.std(ddof=1)) if ok.size > 1 else 0.0,
+            "min": float(ok.min()), "max": float(ok.max())}
+
+
+def summarize(spec: SweepSpec, out: Path) -> dict:
+    """Per configuration: the final metrics' mean and spread over seeds; configurations ranked best first."""
+    trials = spec.trials
+    per_config = []
+    for ci, (label, point) in enumerate(zip(spec.labels, spec.points)):
+        mine = [t for t in trials if t.config_index == ci]
+        finals = {t.name: final_metrics(read_rows(out / "trials" / t.name), spec.last_updates) for t in mine}
+        diverged = [t.name for t in mine if (out / "trials" / t.name / "DIVERGED").exists()]
+        entry = {"config": ci, "label": label, "point": point, "trials": finals, "diverged": diverged}
+        entry.update({m: _stats([f[m] for f in finals.values()]) for m in RANK_METRICS})
+        per_config.append(entry)
+
+    def rank_key(e):
+        nan_last = lambda x, sign: (math.inf if math.isnan(x) else sign * x)  # noqa: E731
+        return (len(e["diverged"]) > 0, nan_last(e["success"]["mean"], -1), nan_last(e["collision"]["mean"], 1),
+                nan_last(e["episode_return"]["mean"], -1))
+
+    ranked = sorted(per_config, key=rank_key)
+    for r, e in enumerate(ranked, 1):
+        e["rank"] = r
+    return {"name": spec.name, "seeds": list(spec.seeds), "last_updates": spec.last_updates, "configs": ranked}
+
+
+def format_table(results: dict) -> str:
+    """The ranked markdown table: mean ± std over seeds."""
+    head = "| rank | config | success | collision | return | trials |\n|---:|---|---:|---:|---:|---|\n"
+    def cell(s: dict) -> str:
+        return "n/a" if math.isnan(s["mean"]) else f"{s['mean']:.3f} ± {s['std']:.3f}"
+
+    lines = []
+    for e in results["configs"]:
+        note = f" ({len(e['diverged'])} diverged)" if e["diverged"] else ""
+        lines.append(f"| {e['rank']} | {e['label']} | {cell(e['success'])} | {cell(e['collision'])} | "
+                     f"{cell(e['episode_return'])} | c{e['config']:02d}-s*{note} |")
+    return head + "\n".join(lines)
+
+
+def write_reports(results: dict, out: Path) -> list[Path]:
+    """results.json, results.csv, report.md and curves.png in ``out``."""
+    out = Path(out)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
+    with (out / "results.csv").open("w", newline="") as f:
+        fields = sorted({k for e in results["configs"] for k in e["point"]})
+        w = csv.writer(f)
+        w.writerow(["rank", "config", "label", *fields,
+                    *[f"{m}_{s}" for m in RANK_METRICS for s in ("mean", "std", "min", "max")], "diverged"])
+        for e in results["configs"]:
+            w.writerow([e["rank"], e["config"], e["label"], *[e["point"].get(k, "") for k in fields],
+                        *[e[m][s] for m in RANK_METRICS for s in ("mean", "std", "min", "max")], len(e["diverged"])])
+    (out / "report.md").write_text(f"# sweep {results['name']}\n\nFinal metrics: episode-weighted mean over the "
+                                   f"last {results['last_updates']} updates; mean ± std over seeds "
+                                   f"{results['seeds']}.\n\n{format_table(results)}\n")
+    return [out / "results.json", out / "results.csv", out / "report.md", plot_curves(results, out)]
+
+
+def plot_curves(results: dict, out: Path) -> Path:
+    """Learning curves per configuration: mean over seeds, with the seeds' range shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("episode/episode_return", "episode return"), ("episode/success", "success rate"),
+              ("episode/collision", "collision rate")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    for ci, e in enumerate(sorted(results["configs"], key=lambda e: e["config"])):
+        runs = [read_rows(out / "trials" / name) for name in e["trials"]]
+        n = min(len(r) for r in runs)
+        if n == 0:
+            continue
+        x = np.array([r["env_steps"] for r in runs[0][:n]])
+        for ax, (name, _) in zip(axes, panels):
+            y = np.array([[row[name] for row in r[:n]] for r in runs])
+            ax.plot(x, y.mean(0), color=f"C{ci % 10}", label=e["label"] if ax is axes[0] else None)
+            ax.fill_between(x, y.min(0), y.max(0), color=f"C{ci % 10}", alpha=0.15)
+    for ax, (_, title) in zip(axes, panels):
+        ax.set_title(title)
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"sweep {results['name']}")
+    fig.tight_layout()
+    path = out / "curves.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+# --- benchmark ------------------------------------------------------------------------------------------
+
+
+def bench_sweep(spec: SweepSpec, seed: int | None = None, log: Callable[[str], None] = print) -> dict:
+    """Wall time of the spec's configurations (one seed) trained in one vmapped program vs one after another.
+
+    Both include compiling: sequential runs compile once per configuration, because each bakes its
+    hyperparameters into its program as constants. ``run`` times repeat the compiled call.
+    Only configurations that share a program (value-only differences) are benchmarked: the first group.
+    """
+    from aswarm.agents.train import make_train
+
+    seed = spec.seeds[0] if seed is None else seed
+    one_seed = dataclasses.replace(spec, seeds=(seed,))
+    group = groups(one_seed)[0]
+    base = group.trials[0].config
+    n = base.num_updates
+
+    def timed(fn, *args):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        return time.perf_counter() - t
+
+    from aswarm.agents import sharding
+
+    _, init_fn, chunk_fn, keys, values, _ = _programs(group, sharding.make_mesh(1, base.num_envs, jax.devices()[:1]))
+    state = {}
+
+    def vmapped():
+        state["ts"] = init_fn(keys, values)
+        return chunk_fn(state["ts"], n)
+
+    v_total = timed(vmapped)
+    v_run = timed(lambda: chunk_fn(init_fn(keys, values), n))
+    log(f"vmapped: {len(group.trials)} configurations, {v_total:.1f} s with compile, {v_run:.1f} s run")
+    s_total = s_run = 0.0
+    for t in group.trials:
+        _, init, chunk, _ = make_train(t.config)
+        i_fn, c_fn = jax.jit(init), jax.jit(chunk, static_argnums=1)
+
+        def one(key, i_fn=i_fn, c_fn=c_fn):
+            return c_fn(i_fn(key), n)
+
+        key = jax.random.PRNGKey(t.config.seed)
+        s_total += timed(one, key)
+        s_run += timed(one, key)
+        log(f"sequential {t.name}: {s_total:.1f} s so far")
+    k = len(group.trials)
+    return {"configs": k, "updates": n, "num_envs": base.num_envs, "rollout_steps": base.rollout_steps,
+            "scenario": base.scenario, "method": base.method, "devices": 1,
+            "vmapped_total_s": v_total, "sequential_total_s": s_total, "vmapped_run_s": v_run,
+            "sequential_run_s": s_run, "speedup_total": s_total / v_total, "speedup_run": s_run / v_run}
+
+
+def format_bench(b: dict) -> str:
+    return (f"K = {b['configs']} configurations of `{b['scenario']}` / {b['method']}, {b['num_envs']} worlds x "
+            f"{b['rollout_steps']} steps, {b['updates']} updates each, one CPU device:\n\n"
+            "| | one vmapped program | K sequential runs | ratio |\n|---|---:|---:|---:|\n"
+            f"| wall time with compile | {b['vmapped_total_s']:.1f} s | {b['sequential_total_s']:.1f} s | "
+            f"{b['speedup_total']:.2f}x |\n"
+            f"| wall time, compiled | {b['vmapped_run_s']:.1f} s | {b['sequential_run_s']:.1f} s | "
+            f"{b['speedup_run']:.2f}x |\n")

@@ -1,0 +1,201 @@
+"""``aswarm export``: round trip, manifest, atomic writes, refusals and clear errors."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.training.acme import running_statistics
+from flax import struct
+
+from aswarm import cli, envs, export
+from aswarm.agents import checkpoint, evaluate, runner
+from aswarm.agents.config import TrainConfig
+from aswarm.agents.train import Agent
+from aswarm.flight import bundle as fb
+
+
+@struct.dataclass
+class PolicyState:
+    """What ``checkpoint.save`` needs of a train state to write the policy item."""
+
+    params: dict
+    obs_norm: running_statistics.RunningStatisticsState
+    update: jax.Array
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A run folder as ``aswarm train`` leaves it (config.json and an orbax checkpoint), without training.
+
+    Compiling the trainer for a tiny run took ~100 s on 2 cores; the checkpoint format is the same.
+    The normalizer gets non-trivial statistics so that its round trip means something.
+    """
+    config = TrainConfig(scenario="race", num_envs=8, rollout_steps=4, total_steps=64,
+                         env_overrides=(("num_agents", 3),))
+    agent = Agent.build(config)
+    d = agent.env.observation_size
+    rng = np.random.default_rng(0)
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(3))
+    norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
+    norm = norm.replace(mean=jnp.asarray(rng.normal(size=d), jnp.float32),
+                        std=jnp.asarray(rng.uniform(0.1, 3.0, d), jnp.float32))
+    path = tmp_path_factory.mktemp("runs") / "race-run"
+    path.mkdir()
+    runner.write_config(path, config, agent.env.config)
+    checkpoint.save(checkpoint.manager(path), 7, PolicyState(params, norm, jnp.asarray(7, jnp.int32)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def exported(run_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bundles") / "race"
+    return export.export(run_dir, out)
+
+
+def test_round_trip_is_bit_identical(run_dir, exported):
+    config, restored = evaluate.load(run_dir)
+    want = export.policy_arrays(restored["params"], restored["obs_norm"])
+    b = fb.load_bundle(exported)
+    assert set(b.arrays) == set(want)
+    for name, a in want.items():
+        got = b.arrays[name]
+        assert got.dtype == np.float32 and got.shape == a.shape
+        assert np.array_equal(got.view(np.uint32), a.view(np.uint32)), name  # bit for bit
+    np.testing.assert_array_equal(b.arrays["obs_norm/std"], np.asarray(restored["obs_norm"].std))
+    assert "actor/MLP_0/Dense_0/kernel" in b.arrays and "cbf/W_Q/kernel" in b.arrays
+    assert not any(k.startswith("critic") for k in b.arrays)  # the flight side needs no critic
+
+
+def test_npz_holds_plain_arrays_only(exported):
+    with zipfile.ZipFile(exported / fb.NPZ) as z:
+        assert all(n.endswith(".npy") for n in z.namelist())
+    with np.load(exported / fb.NPZ, allow_pickle=False) as z:  # would raise on any object array
+        assert all(z[k].dtype == np.float32 for k in z.files)
+
+
+def test_manifest_describes_the_policy(run_dir, exported):
+    m = json.loads((exported / fb.MANIFEST).read_text())
+    env = envs.make("race", num_agents=3)
+    assert m["format"] == fb.FORMAT and m["format_version"] == fb.FORMAT_VERSION
+    assert m["scenario"] == {"name": "race", "kind": "track", "env_overrides": {"num_agents": 3}}
+    assert m["observation"]["fields"] == env.obs_layout.describe()  # the simulator's layout, field by field
+    assert m["observation"]["size"] == env.observation_size
+    e = m["env"]
+    assert (e["num_agents"], e["num_cylinders"], e["num_gates"], e["policy_freq"]) == (3, 8, 4, 50)
+    assert e["collision_radius"] == env.config.cf.collision_radius and e["arena_high"] == [8.0, 6.0, 3.0]
+    assert m["action"]["unit"] == "m/s" and m["action"]["frame"] == "world" and m["action"]["high"] == 2.0
+    assert m["control"]["rate_hz"] == 50
+    sf = m["safety_filter"]
+    assert sf["enabled"] and sf["gain_source"] == "attention" and sf["margin"] == 0.1 and sf["rho"] == 1e6
+    assert (sf["gate_half_opening"], sf["gate_bar"], sf["drone_radius"]) == (0.3, 0.05, 0.06)
+    assert m["networks"]["cbf"]["activation"] == "gelu_tanh" and m["networks"]["actor"]["activation"] == "tanh"
+    assert m["npz_sha256"] == hashlib.sha256((exported / fb.NPZ).read_bytes()).hexdigest()
+    assert m["source"]["train_config_sha256"] == hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest()
+    assert m["source"]["trained_updates"] == 7 and m["source"]["train_config"]["method"] == "attention_cbf"
+    assert len(m["course"]["gates"]) == 4 and all(len(g) == 4 for g in m["course"]["gates"])
+
+
+def test_flax_gelu_is_the_tanh_approximation_the_flight_side_computes():
+    import flax.linen as nn
+
+    from aswarm.flight.policy import gelu_tanh
+
+    x = np.linspace(-6, 6, 1001)
+    with jax.enable_x64(True):
+        np.testing.assert_allclose(np.asarray(nn.gelu(jnp.asarray(x))), gelu_tanh(x), rtol=0, atol=1e-14)
+
+
+def test_exported_networks_run_in_numpy_as_in_jax(run_dir, exported):
+    """The exported actor and attention-CBF network against the checkpoint's, on random observations.
+
+    (The whole runtime, filter included, is checked against ``Agent.act`` in tests/test_flight.py.)
+    """
+    from aswarm.flight import policy
+
+    config, restored = evaluate.load(run_dir)
+    agent = Agent.build(config)
+    layout = agent.env.obs_layout
+    rng = np.random.default_rng(1)
+    obs = rng.normal(0.0, 3.0, (16, 3, layout.size))
+    _, cyl, nbr = layout.split(obs)  # views: set the presence flags to 0 or 1
+    cyl[..., -1] = rng.uniform(size=cyl.shape[:-1]) < 0.7
+    nbr[..., -1] = rng.uniform(size=nbr.shape[:-1]) < 0.7
+    b = fb.load_bundle(exported)
+    with jax.enable_x64(True):
+        o = jnp.asarray(obs)
+        cmd = np.asarray(agent.policy(restored["params"], restored["obs_norm"], o, None)[0])
+        gain = np.asarray(agent.cbf_params(restored["params"], restored["obs_norm"], o)[0][..., 1])
+    nobs = policy.normalize(b.weights, obs)
+    np.testing.assert_allclose(policy.actor_command(b.weights, nobs, 2.0), cmd, rtol=0, atol=1e-12)
+    sf = b.safety_filter
+    mine = policy.cbf_params(b.weights, b.layout, nobs, obs, gain_min=sf["gain_min"], gain_max=sf["gain_max"],
+                             penalty_max=sf["penalty_max"])[1]
+    np.testing.assert_allclose(mine, gain, rtol=0, atol=1e-12)
+
+
+def test_existing_bundle_is_not_overwritten_without_force(run_dir, exported, tmp_path, capsys):
+    before = (exported / fb.MANIFEST).read_bytes()
+    with pytest.raises(fb.BundleError, match="already exists: allowed: a new --out folder, or --force"):
+        export.export(run_dir, exported)
+    assert (exported / fb.MANIFEST).read_bytes() == before
+    assert cli.main(["export", "--checkpoint", str(run_dir), "--out", str(exported)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    out = tmp_path / "copy"
+    assert cli.main(["export", "--checkpoint", str(run_dir), "--out", str(out)]) == 0
+    assert cli.main(["export", "--checkpoint", str(run_dir), "--out", str(out), "--force"]) == 0
+    assert fb.load_bundle(out).arrays.keys() == fb.load_bundle(exported).arrays.keys()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]  # no temporary folders left behind
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    with pytest.raises(fb.BundleError, match="is not a bundle: --force replaces only a bundle"):
+        export.export(run_dir, other, force=True)
+    assert (other / "keep.txt").read_text() == "mine"
+
+
+def test_a_failed_write_leaves_nothing_behind(run_dir, tmp_path, monkeypatch):
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(fb.np, "savez", boom)
+    with pytest.raises(OSError, match="disk full"):
+        export.export(run_dir, tmp_path / "b")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_unreadable_checkpoints_give_a_clear_error(tmp_path, capsys):
+    with pytest.raises(checkpoint.CheckpointError, match="does not exist: give a run folder or 'pretrained'"):
+        export.export(tmp_path / "nope", tmp_path / "b")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(checkpoint.CheckpointError, match="is not a run folder: config.json is missing"):
+        export.export(empty, tmp_path / "b")
+    (empty / "config.json").write_text("{not json")
+    with pytest.raises(checkpoint.CheckpointError, match="is not a valid aswarm run config"):
+        export.export(empty, tmp_path / "b")
+    if not evaluate.PRETRAINED.exists():
+        with pytest.raises(checkpoint.CheckpointError, match="no pretrained policy ships yet"):
+            export.export("pretrained", tmp_path / "b")
+    assert cli.main(["export", "--checkpoint", str(tmp_path / "nope"), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("aswarm export: error:") and "\n" not in err
+    assert not (tmp_path / "b").exists()
+
+
+def test_corrupt_checkpoint_gives_a_clear_error(run_dir, tmp_path):
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(run_dir, broken)
+    for f in (broken / "checkpoints").rglob("*"):
+        if f.is_file() and f.stat().st_size > 0:
+            f.write_bytes(b"\x00" * 16)
+    with pytest.raises(checkpoint.CheckpointError, match="cannot be restored"):
+        export.export(broken, tmp_path / "b")
+    assert not (tmp_path / "b").exists()

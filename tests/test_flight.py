@@ -1,0 +1,554 @@
+"""The numpy flight runtime: JAX-free import, parity with the simulator and the JAX policy, safety, SITL, fly.
+
+The JAX half records closed-loop race episodes once (module fixture) with a policy whose actor is
+set by hand to fly at the current gate, so the drones bunch up at gates, pass cylinders and the
+safety filter works on many states; a noisy copy of the rollout adds off-policy states.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.training.acme import running_statistics
+
+from aswarm import cli, envs, export, sitl
+from aswarm.agents import evaluate
+from aswarm.agents.config import TrainConfig
+from aswarm.agents.train import Agent
+from aswarm.envs import swarm_env
+from aswarm.flight import bench, cbf, estimator, observe
+from aswarm.flight import bundle as fb
+from aswarm.flight import controller as fc
+from aswarm.flight import fly as ffly
+
+B = 8  # worlds
+SEED = 10_000
+EPISODE_S = 4.0
+# A wider gate than the race's 0.3 m: the hand-set actor aims at the gate centre from an angle, and the
+# filter slows a drone closing on a bar, so with the real opening almost no drone passed in 4 s.
+HALF_OPENING = 0.6
+URIS = ",".join(f"radio://0/80/2M/E7E7E7E70{i}" for i in range(4))
+BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax", "chex", "cflib")
+
+
+# ------------------------------------------------------------------ fixtures
+def gate_seeking(params: dict, d: int, rng: np.random.Generator):
+    """Actor flying at the current gate, cmd = 2 tanh(3 tanh(tanh(-0.25 (p - g)))); a random normalizer.
+
+    p - g is the observed target_rel. The first layer undoes the normalizer on those 3 inputs; the
+    other units stay random. The CBF head is scaled up so that the class-K gains spread over part of
+    their range.
+    """
+    mean = rng.normal(0.0, 0.1, d).astype(np.float32)
+    std = rng.uniform(0.5, 2.0, d).astype(np.float32)
+    p = jax.tree.map(np.array, params)
+    mlp = p["actor"]["params"]["MLP_0"]
+    k0, b0 = mlp["Dense_0"]["kernel"], mlp["Dense_0"]["bias"]
+    k1, b1 = mlp["Dense_1"]["kernel"], mlp["Dense_1"]["bias"]
+    k2, b2 = mlp["Dense_2"]["kernel"], mlp["Dense_2"]["bias"]
+    for j in range(3):
+        k0[:, j], k1[:, j], k2[:, j] = 0.0, 0.0, 0.0
+        k0[j, j], b0[j] = -0.25 * std[j], -0.25 * mean[j]
+        k1[j, j], b1[j] = 1.0, 0.0
+        k2[j, j], b2[j] = 3.0, 0.0
+    p["cbf"]["params"]["MLP_0"]["Dense_2"]["kernel"] *= 3.0
+    norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
+    norm = norm.replace(mean=jnp.asarray(mean), std=jnp.asarray(std))
+    return jax.tree.map(jnp.asarray, p), norm
+
+
+def rollout(sim, act, params, obs_norm, noise: float, rng) -> SimpleNamespace:
+    """Closed loop of the JAX policy (``Agent.act``, float32), recording every state it acts on."""
+    env = sim.env
+    n = env.num_agents
+    state, sensed = sim.reset(jax.random.PRNGKey(SEED))
+    keys = ("obs", "pos", "quat", "vel", "ang_vel", "target", "finished", "time", "u")
+    rec = {k: [] for k in keys}
+    ended = np.zeros(B, bool)
+    first = None
+    for k in range(env.config.max_steps + 1):
+        done = np.asarray(sensed.done) > 0
+        metrics = jax.device_get(sensed.metrics)
+        first = {m: np.asarray(v) for m, v in metrics.items()} if first is None else first
+        new = done & ~ended
+        first = {m: np.where(new, np.asarray(metrics[m]), first[m]) for m in first}
+        ended |= new
+        if k == env.config.max_steps or (noise == 0 and ended.all()):
+            break
+        u = act(params, obs_norm, state.obs)
+        qpos = np.asarray(state.data.qpos).reshape(B, n, 7)
+        qvel = np.asarray(state.data.qvel).reshape(B, n, 6)
+        for name, v in (("obs", state.obs), ("pos", qpos[..., :3]), ("quat", qpos[..., 3:]), ("vel", qvel[..., :3]),
+                        ("ang_vel", qvel[..., 3:]), ("target", state.tracker.target),
+                        ("finished", state.tracker.finished), ("time", state.data.time), ("u", u)):
+            rec[name].append(np.asarray(v))
+        cmd = np.asarray(u) + noise * rng.normal(size=(B, n, 3))
+        state, sensed = sim.step(state, jnp.asarray(np.clip(cmd, -2.0, 2.0), jnp.float32))
+    out = {k: np.stack(v) for k, v in rec.items()}  # [T, B, ...]
+    return SimpleNamespace(**out, metrics=first, ended=ended, layout=jax.device_get(state.layout))
+
+
+@pytest.fixture(scope="module")
+def race(tmp_path_factory):
+    overrides = (("episode_seconds", EPISODE_S), ("gate_half_opening", HALF_OPENING))
+    config = TrainConfig(scenario="race", method="attention_cbf", env_overrides=overrides)
+    sim = sitl.simulator(envs.make("race", **dict(overrides)).config, B)
+    env = sim.env
+    agent = Agent.build(config, env)
+    rng = np.random.default_rng(0)
+    params, obs_norm = gate_seeking(jax.jit(agent.init_params)(jax.random.PRNGKey(1)), env.observation_size, rng)
+    path = export.export_policy(config, params, obs_norm, tmp_path_factory.mktemp("b") / "bundle", env=env,
+                                source="test: gate-seeking actor")
+    act = jax.jit(agent.act)
+    clean = rollout(sim, act, params, obs_norm, 0.0, rng)
+    noisy = rollout(sim, act, params, obs_norm, 0.8, rng)
+    return SimpleNamespace(config=config, env=env, agent=agent, params=params, obs_norm=obs_norm, path=path,
+                           bundle=fb.load_bundle(path), clean=clean, noisy=noisy)
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """A race-sized bundle with random weights, written without JAX."""
+    b = bench.synthetic_bundle()
+    path = tmp_path_factory.mktemp("s") / "bundle"
+    fb.write_bundle(path, dict(b.arrays), {k: v for k, v in b.manifest.items() if k not in ("arrays", "npz_sha256")})
+    return fb.load_bundle(path)
+
+
+# ------------------------------------------------------------------ no JAX on the flight side
+def test_flight_package_imports_no_jax_flax_mujoco_or_brax(synthetic):
+    code = textwrap.dedent(f"""
+        import importlib.abc, sys
+        BLOCKED = {BLOCKED!r}
+        class Block(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in BLOCKED:
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Block())
+        import numpy as np
+        import aswarm.flight, aswarm.flight.fly, aswarm.flight.bench
+        from aswarm.flight import FlightController, load_bundle
+        b = load_bundle({str(synthetic.path)!r})
+        ctl = FlightController(b, 4)
+        ctl.reset(gates=np.array(b.manifest["course"]["gates"]))
+        out = ctl.step(np.array([[3.0, -3.5, 1.0], [2.2, -3.5, 1.0], [1.4, -3.5, 1.0], [0.6, -3.5, 1.0]]),
+                       np.tile([1.0, 0, 0, 0], (4, 1)), np.zeros(4), now=0.0)
+        assert np.all(np.isfinite(out.velocity))
+        bad = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
+        assert not bad, bad
+        print("ok")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr
+
+
+def test_flight_tables_are_the_simulators():
+    assert observe.OWN_FIELDS == swarm_env.OWN_FIELDS
+    assert observe.CYL_FIELDS == swarm_env.CYL_FIELDS
+    assert observe.NBR_FIELDS == swarm_env.NBR_FIELDS
+    for m, k in ((8, 3), (0, 0), (3, 1)):
+        assert observe.ObsLayout(m, k).describe() == swarm_env.ObsLayout(m, k).describe()
+
+
+# ------------------------------------------------------------------ parity with the simulator and JAX
+def _states(race):
+    """All recorded drone-states of both rollouts, as [S, n, ...] (S = steps x worlds)."""
+    cat = {k: np.concatenate([getattr(r, k).reshape((-1,) + getattr(r, k).shape[2:]) for r in (race.clean, race.noisy)])
+           for k in ("obs", "pos", "quat", "vel", "ang_vel", "target", "finished", "time", "u")}
+    world = np.concatenate([np.tile(np.arange(B), len(r.time)) for r in (race.clean, race.noisy)])
+    return SimpleNamespace(**cat, world=world)
+
+
+def test_numpy_observation_equals_the_simulators(race):
+    s = _states(race)
+    lay = race.clean.layout  # the same layouts in both rollouts (same reset keys)
+    n = race.env.num_agents
+    normals = np.broadcast_to(observe.gate_normals(lay.gate_yaw)[:, None], lay.waypoints.shape)
+    cyl_pos, cyl_vel = observe.cylinders_at(lay.cyl_center[s.world], lay.cyl_axis[s.world],
+                                            lay.cyl_amplitude[s.world], lay.cyl_omega[s.world],
+                                            lay.cyl_phase[s.world], s.time)
+    obs = observe.observe(s.pos.astype(float), s.quat, s.vel, s.ang_vel, lay.waypoints[s.world], normals[s.world],
+                          s.target, ~s.finished, cyl_pos, cyl_vel, lay.cyl_radius[s.world], lay.cyl_present[s.world],
+                          race.env.config.cf.collision_radius)
+    assert obs.shape == s.obs.shape and s.obs.shape[1:] == (n, race.env.observation_size)
+    assert s.target.max() >= 1, "no drone passed a gate: the gate fields were not exercised"
+    np.testing.assert_allclose(obs, s.obs, rtol=0, atol=2e-5)
+
+
+def test_numpy_policy_and_filter_match_jax_on_recorded_states(race):
+    """Normalizer + actor + attention gain + CBF filter against ``Agent.act`` on every recorded state.
+
+    JAX runs in float32 and the numpy side in float64. Against JAX in float64 (same weights, same
+    algorithm) the numpy runtime agrees to rounding; against the float32 run the gap is the float32
+    solver's own rounding, largest where the QP is infeasible and the slack is large.
+    """
+    s = _states(race)
+    pol = fc.run_policy(race.bundle, s.obs.astype(np.float64))
+    active = pol.intervened
+    err32 = np.abs(pol.u - s.u).max(-1)
+    with jax.enable_x64(True):
+        u64 = np.asarray(jax.jit(race.agent.act)(race.params, race.obs_norm, jnp.asarray(s.obs, jnp.float64)))
+    err64 = np.abs(pol.u - u64).max()
+    print(f"\n{err32.size} drone-states, filter active on {active.sum()} ({100 * active.mean():.0f} %); "
+          f"max |numpy - jax float64| = {err64:.1e}; numpy - jax float32: max {err32.max():.1e}, "
+          f"{100 * np.mean(err32 <= 1e-5):.2f} % within 1e-5")
+    assert err32.size >= 5000 and active.mean() > 0.2
+    assert err64 < 1e-9
+    assert np.mean(err32 <= 1e-5) > 0.99 and err32.max() < 1e-4
+    assert np.all(pol.converged)
+
+
+def _reference_qp(u_nom, A, b, mask, u_max, rho=1e6):
+    """Exact solution by enumerating active sets (≤ 4 rows in R^4) with the KKT conditions (float64)."""
+    import itertools
+
+    A, b = A[mask], b[mask]
+    nrm = np.linalg.norm(A, axis=1)
+    A, b = A / nrm[:, None], b / nrm
+    eye = np.eye(3)
+    G = np.block([[A, np.full((len(b), 1), 1 / np.sqrt(rho))], [eye, np.zeros((3, 1))], [-eye, np.zeros((3, 1))]])
+    h = np.concatenate([b, np.full(6, -u_max)])
+    x0 = np.append(u_nom, 0.0)
+    if np.all(G @ x0 >= h - 1e-12):
+        return x0[:3]
+    for k in range(1, 5):
+        for S in itertools.combinations(range(len(h)), k):
+            N = G[list(S)]
+            gram = N @ N.T
+            if np.linalg.cond(gram) > 1e13:  # dependent rows (the slack column makes good sets ~1e7)
+                continue
+            nu = np.linalg.solve(gram, h[list(S)] - N @ x0)
+            x = x0 + N.T @ nu
+            if np.all(nu >= -1e-7) and np.all(G @ x - h >= -1e-7):  # (|x| reaches 1e4 when very infeasible)
+                return x[:3]
+    raise AssertionError("no KKT point")
+
+
+@pytest.mark.parametrize("scalar_below", [0, 10_000], ids=["batched", "one-by-one"])
+def test_qp_matches_exact_enumeration_on_random_problems(scalar_below, monkeypatch):
+    """Both ways the active-set steps run (over a batch, or problem by problem in floats) are exact."""
+    monkeypatch.setattr(cbf, "SCALAR_MAX_PROBLEMS", scalar_below)
+    rng = np.random.default_rng(3)
+    P, m = 120, 6
+    A = rng.normal(size=(P, m, 3))
+    b = rng.normal(size=(P, m)) * 2.0
+    mask = rng.uniform(size=(P, m)) < 0.8
+    u_nom = rng.uniform(-3, 3, size=(P, 3))
+    res = cbf.filter_velocity(u_nom, A, b, mask, 2.0)
+    ref = np.stack([_reference_qp(u_nom[i], A[i], b[i], mask[i], 2.0) for i in range(P)])
+    assert res.intervened.mean() > 0.5 and np.all(res.converged)
+    np.testing.assert_allclose(res.u, ref, atol=1e-8)
+    assert np.all(np.abs(res.u) <= 2.0)
+
+
+def test_sitl_matches_jax_closed_loop_within_noise(race):
+    """Same episodes (same keys) flown by the numpy runtime from poses only, and by JAX from true states."""
+    r = sitl.run_sitl(race.path, episodes=B, seed=SEED)
+    ref = evaluate.summarize(race.clean.metrics)
+    print(f"\nSITL: success {r['success_rate']:.2f} collision {r['collision_rate']:.2f} progress {r['progress']:.3f} "
+          f"| JAX: success {ref['success_rate']:.2f} collision {ref['collision_rate']:.2f} "
+          f"progress {ref['progress']:.3f}; runtime {r['runtime_ms_per_step']:.2f} ms/step for {B} worlds")
+    for name in ("success", "collision"):
+        lo, hi = ref[f"{name}_ci95"]
+        assert lo <= r[f"{name}_rate"] <= hi, (name, r[f"{name}_rate"], (lo, hi))
+    assert ref["progress"] > 0.05, "the reference policy passed no gate: nothing to compare"
+    assert abs(r["progress"] - ref["progress"]) < 0.1
+    assert r["episodes_ended"] == B and 0 < r["filter_intervention_rate"] < 1
+
+
+def test_sitl_with_noise_and_latency_and_its_cli(race, capsys):
+    r = sitl.run_sitl(race.path, episodes=B, seed=SEED + 1, noise=0.003, latency=2)
+    assert r["noise"] == 0.003 and r["latency"] == 2 and 0.0 <= r["collision_rate"] <= 1.0
+    assert np.isfinite(r["progress"]) and r["control_steps"] > 0
+    assert "SITL episodes" in sitl.format_table(r)
+    assert cli.main(["sitl", "--bundle", str(race.path), "--episodes", str(B), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["episodes"] == B and set(out) >= {"success_rate", "collision_ci95", "runtime_ms_per_step"}
+    with pytest.raises(ValueError, match="invalid latency"):
+        sitl.run_sitl(race.path, episodes=B, latency=-1)
+    with pytest.raises(ValueError, match="observation layout does not transfer"):
+        sitl.run_sitl(race.path, episodes=B, env_overrides=["num_agents=3"])
+
+
+# ------------------------------------------------------------------ estimator
+def _qexp(r):
+    a = np.linalg.norm(r)
+    return np.concatenate([[np.cos(a / 2)], np.sin(a / 2) * r / a])
+
+
+def test_estimator_recovers_velocity_and_body_rate_despite_jitter_and_sign_flips():
+    rng = np.random.default_rng(0)
+    v, w = np.array([0.7, -1.1, 0.3]), np.array([0.4, -1.5, 2.2])
+    q0 = _qexp(np.array([0.3, -0.2, 1.0]))
+    st = estimator.init((1,))
+    for k in range(8):
+        t = 0.02 * k + rng.uniform(0, 0.004)  # jittered timestamps
+        q = estimator.quat_mul(q0, _qexp(w * t)) * (-1) ** k  # the sign of a mocap quaternion is arbitrary
+        st, acc, glitch = estimator.update(st, np.array([t]), (v * t + 1.0)[None], q[None], np.ones(1, bool))
+        assert acc[0] and not glitch[0]
+    vel, ang = estimator.estimate(st)
+    np.testing.assert_allclose(vel[0], v, atol=1e-9)
+    np.testing.assert_allclose(ang[0], w, atol=1e-9)  # body frame: q(t) = q0 ⊗ exp(w t / 2)
+
+
+def test_estimator_averages_noise_rejects_glitches_and_repeats():
+    rng = np.random.default_rng(1)
+    cfg = estimator.EstimatorConfig(window=6)
+    st = estimator.init((1,), cfg)
+    q = np.array([[1.0, 0, 0, 0]])
+    errs, diffs, prev = [], [], None
+    for k in range(200):
+        t = 0.01 * k
+        p = np.array([[0.5 * t, 0.0, 1.0]]) + rng.normal(0, 0.001, (1, 3))
+        st, _, _ = estimator.update(st, np.array([t]), p, q, np.ones(1, bool), cfg)
+        if k >= 6:
+            errs.append(estimator.estimate(st, cfg)[0][0] - [0.5, 0, 0])
+            diffs.append((p - prev)[0] / 0.01 - [0.5, 0, 0])
+        prev = p
+    assert np.std(errs) < 0.3 * np.std(diffs)  # the fit is much quieter than a finite difference
+    t_last = st.t[0, -1]
+    st2, acc, glitch = estimator.update(st, np.array([t_last + 0.01]), np.array([[5.0, 0, 1]]), q,
+                                        np.ones(1, bool), cfg)
+    assert glitch[0] and not acc[0] and np.array_equal(st2.pos, st.pos)  # a 5 m jump in 10 ms: rejected
+    st3, acc, _ = estimator.update(st, np.array([t_last]), np.array([[0.0, 0, 1]]), q, np.ones(1, bool), cfg)
+    assert not acc[0] and np.array_equal(st3.pos, st.pos)  # a repeated frame is not a new sample
+
+
+# ------------------------------------------------------------------ safety on bad input
+def _controller(bundle, **safety):
+    ctl = fc.FlightController(bundle, 4, safety=fc.SafetyConfig(**safety))
+    ctl.reset(gates=np.array(bundle.manifest["course"]["gates"]))
+    return ctl
+
+
+START = np.array([[3.0, -3.5, 1.0], [2.2, -3.5, 1.0], [1.4, -3.5, 1.0], [0.6, -3.5, 1.0]])
+Q = np.tile([1.0, 0.0, 0.0, 0.0], (4, 1))
+
+
+def _ok(out, max_speed=2.0):
+    assert np.all(np.isfinite(out.velocity)) and np.all(np.abs(out.velocity) <= max_speed)
+
+
+def _kinds(out):
+    return {(e.drone, e.kind) for e in out.events}
+
+
+def test_nan_or_missing_pose_hovers_that_drone_and_reports_it(synthetic):
+    ctl = _controller(synthetic)
+    for k in range(3):
+        _ok(ctl.step(START + [0.01 * k, 0, 0], Q, np.full(4, 0.02 * k), now=0.02 * k))
+    pos = START.copy()
+    pos[1] = np.nan
+    quat = Q.copy()
+    quat[3] = 0.0  # a zero quaternion is no attitude
+    ts = np.full(4, 0.06)
+    ts[2] = np.nan  # no timestamp: missing
+    out = ctl.step(pos, quat, ts, now=0.06)
+    _ok(out)
+    for d in (1, 2, 3):
+        assert out.hover[d] and np.all(out.velocity[d] == 0) and (d, "invalid_pose") in _kinds(out)
+    assert not out.hover[0] and np.any(out.velocity[0] != 0)
+    assert (1, "invalid_pose") not in _kinds(ctl.step(pos, quat, ts, now=0.08))  # reported once, when it starts
+
+
+def test_stale_pose_hovers_then_lands(synthetic):
+    ctl = _controller(synthetic, stale_after=0.1, land_after=0.3)
+    _ok(ctl.step(START, Q, np.zeros(4), now=0.0))
+    seen = set()
+    for k in range(1, 25):
+        now = 0.02 * k
+        ts = np.full(4, now)
+        ts[0] = 0.0  # drone 0's mocap froze
+        out = ctl.step(START, Q, ts, now=now)
+        _ok(out)
+        seen |= _kinds(out)
+        if now > 0.1 + 1e-9:
+            assert out.hover[0] and np.all(out.velocity[0] == 0)
+        if now > 0.3 + 1e-9:
+            assert out.land[0]
+    assert {(0, "stale_pose"), (0, "land")} <= seen and not out.land[1:].any()
+
+
+def test_drone_outside_the_geofence_gets_a_land_request(synthetic):
+    ctl = _controller(synthetic)
+    pos = START.copy()
+    pos[2] = [20.0, 0.0, 1.0]  # beyond arena_high x = 8
+    out = ctl.step(pos, Q, np.zeros(4), now=0.0)
+    _ok(out)
+    assert out.land[2] and np.all(out.velocity[2] == 0) and {(2, "geofence"), (2, "land")} <= _kinds(out)
+    out = ctl.step(START, Q, np.full(4, 0.02), now=0.02)  # back inside: landing is latched until reset
+    assert out.land[2] and np.all(out.velocity[2] == 0)
+
+
+def test_nonfinite_command_is_replaced_by_hover(synthetic, monkeypatch):
+    real = fc.run_policy
+
+    def broken(bundle, obs):
+        out = real(bundle, obs)
+        u = out.u.copy()
+        u[..., 1, :] = np.nan
+        return fc.PolicyOutput(out.nominal, u, out.gain, out.intervened, out.converged)
+
+    monkeypatch.setattr(fc, "run_policy", broken)
+    out = _controller(synthetic).step(START, Q, np.zeros(4), now=0.0)
+    _ok(out)
+    assert out.hover[1] and (1, "nonfinite_command") in _kinds(out)
+
+
+def test_random_garbage_never_gives_nan_or_unbounded_commands(synthetic):
+    rng = np.random.default_rng(7)
+    ctl = _controller(synthetic)
+    for k in range(200):
+        pos = START + rng.normal(0, 0.5, (4, 3))
+        quat = Q + rng.normal(0, 0.1, (4, 4))
+        ts = np.full(4, 0.02 * k)
+        junk = rng.uniform(size=4)
+        pos[junk < 0.1] = rng.choice([np.nan, np.inf, -np.inf, 1e12])
+        quat[junk > 0.9] = rng.choice([np.nan, 0.0, 1e9])
+        ts[(junk > 0.4) & (junk < 0.5)] = rng.choice([np.nan, -1.0, 0.0])
+        obstacles = fc.Obstacles(pos=rng.uniform(-8, 8, (5, 2)), radius=np.full(5, 0.15),
+                                 vel=rng.normal(0, 1, (5, 2)))
+        _ok(ctl.step(pos, quat, ts, now=0.02 * k, obstacles=obstacles))
+
+
+def test_a_swarm_that_does_not_match_the_bundle_is_refused(synthetic):
+    with pytest.raises(ValueError, match="trained for 4 drones, the swarm has 3"):
+        fc.FlightController(synthetic, 3)
+    with pytest.raises(ValueError, match="trained on scenario 'race', not 'lab'"):
+        fc.FlightController(synthetic, 4, scenario="lab")
+    ctl = fc.FlightController(synthetic, 4)
+    with pytest.raises(ValueError, match="call reset"):
+        ctl.step(START, Q, np.zeros(4))
+    with pytest.raises(ValueError, match=r"invalid gates of shape \(2, 4\)"):
+        ctl.reset(gates=np.zeros((2, 4)))
+    with pytest.raises(ValueError, match="needs gates"):
+        ctl.reset(goals=np.zeros((4, 3)))
+    ctl.reset(gates=np.array(synthetic.manifest["course"]["gates"]))
+    with pytest.raises(ValueError, match=r"positions has shape \(3, 3\)"):
+        ctl.step(START[:3], Q, np.zeros(4))
+    with pytest.raises(ValueError, match="9 obstacles but the policy observes at most 8"):
+        ctl.step(START, Q, np.zeros(4), obstacles=fc.Obstacles(pos=np.zeros((9, 2)), radius=np.ones(9)))
+    with pytest.raises(ValueError, match="invalid stale_after"):
+        fc.SafetyConfig(stale_after=float("nan"))
+
+
+def test_a_bundle_that_was_changed_or_is_not_understood_is_refused(synthetic, tmp_path):
+    import shutil
+
+    bad = tmp_path / "tampered"
+    shutil.copytree(synthetic.path, bad)
+    with open(bad / fb.NPZ, "r+b") as f:
+        f.seek(200)
+        f.write(b"\x00\x01")
+    with pytest.raises(fb.BundleError, match="sha256"):
+        fb.load_bundle(bad)
+    newer = tmp_path / "newer"
+    shutil.copytree(synthetic.path, newer)
+    m = json.loads((newer / fb.MANIFEST).read_text())
+    m["format_version"] = 99
+    (newer / fb.MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(fb.BundleError, match="format_version 99 is not supported"):
+        fb.load_bundle(newer)
+    arrays = dict(synthetic.arrays)
+    arrays["actor/MLP_0/Dense_0/kernel"] = arrays["actor/MLP_0/Dense_0/kernel"].copy()
+    arrays["actor/MLP_0/Dense_0/kernel"][0, 0] = np.nan
+    with pytest.raises(fb.BundleError, match="NaN or Inf"):
+        fb.bundle_from(dict(synthetic.manifest), arrays)
+    m = dict(synthetic.manifest)
+    m["env"] = {**m["env"], "num_cylinders": 7}
+    with pytest.raises(fb.BundleError, match="observation layout"):
+        fb.bundle_from(m, dict(synthetic.arrays))
+    with pytest.raises(fb.BundleError, match="is not a bundle"):
+        fb.load_bundle(tmp_path)
+
+
+# ------------------------------------------------------------------ fly --dry-run
+def _replay_csv(path, steps=40, missing=(2, range(10, 14))):
+    rows = [",".join(ffly.CSV_COLUMNS)]
+    for k in range(steps):
+        t = 0.01 * k
+        for d in range(4):
+            if d == missing[0] and k in missing[1]:
+                rows.append(f"{t:.3f},{d},nan,nan,nan,nan,nan,nan,nan")
+                continue
+            x, y, z = START[d] + [0.5 * t, 0.0, 0.0]
+            rows.append(f"{t:.3f},{d},{x:.4f},{y:.4f},{z:.4f},1,0,0,0")
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_fly_dry_run_replays_a_pose_log(synthetic, tmp_path, capsys):
+    csv = _replay_csv(tmp_path / "poses.csv")
+    args = ["fly", "--bundle", str(synthetic.path), "--uris", URIS, "--mocap", f"replay:{csv}", "--dry-run"]
+    assert cli.main(args) == 0
+    out = capsys.readouterr().out.splitlines()
+    sends = [line for line in out if "send_velocity_world_setpoint" in line]
+    assert out[0].startswith("takeoff all")
+    assert len(sends) == 4 * 20  # 0.4 s of poses at 50 Hz, 4 drones
+    assert all("yawrate=0 deg/s" in line for line in sends)
+    speeds = np.array([[float(w.split("=")[1]) for w in line.split() if w[:3] in ("vx=", "vy=", "vz=")]
+                       for line in sends])
+    assert np.all(np.isfinite(speeds)) and np.all(np.abs(speeds) <= 2.0)
+    assert any("cf2 invalid_pose" in line for line in out)  # the gap in drone 2's log
+    assert any(line.startswith("t=0.100 cf2") and "vx=+0.000 vy=+0.000 vz=+0.000" in line for line in sends)
+    assert sum(line.startswith("land cf") for line in out) == 4 and out[-1].startswith("flight loop ended")
+
+
+def test_fly_refuses_bad_input_and_stops_on_an_exception(synthetic, tmp_path, capsys):
+    csv = _replay_csv(tmp_path / "poses.csv")
+    base = ["fly", "--bundle", str(synthetic.path), "--mocap", f"replay:{csv}"]
+    assert cli.main(base + ["--uris", URIS.rsplit(",", 1)[0], "--dry-run"]) == 2
+    assert "3 URIs but the bundle was trained for 4 drones" in capsys.readouterr().err
+    assert cli.main(base + ["--uris", URIS]) == 2  # a replay never drives real drones
+    assert "cannot fly real drones" in capsys.readouterr().err
+    (tmp_path / "bad.csv").write_text("t,drone,x,y,z\n0,0,1,2,3\n")
+    assert cli.main(["fly", "--bundle", str(synthetic.path), "--uris", URIS, "--mocap",
+                     f"replay:{tmp_path / 'bad.csv'}", "--dry-run"]) == 2
+    assert "lacks column 'qw'" in capsys.readouterr().err
+
+    lines = []
+
+    class Failing(ffly.DryRunLink):
+        def send_velocities(self, t, velocities, active):
+            if t > 0.05:
+                raise KeyboardInterrupt  # Ctrl-C in the middle of the loop
+            super().send_velocities(t, velocities, active)
+
+    with pytest.raises(KeyboardInterrupt):
+        ffly.fly(synthetic, Failing(URIS.split(","), lines.append), ffly.ReplaySource(csv, 4),
+                 plan=ffly.FlightPlan(realtime=False), log=lines.append)
+    assert lines[-1] == "EMERGENCY STOP all"
+
+
+def test_fly_module_runs_without_jax(synthetic, tmp_path):
+    csv = _replay_csv(tmp_path / "poses.csv", steps=10)
+    code = textwrap.dedent(f"""
+        import importlib.abc, sys
+        class Block(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in {BLOCKED!r}:
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Block())
+        from aswarm.flight import fly
+        sys.exit(fly.main(["--bundle", {str(synthetic.path)!r}, "--uris", {URIS!r}, "--mocap",
+                           "replay:{csv}", "--dry-run"]))
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert "send_velocity_world_setpoint" in run.stdout
+
+
+# ------------------------------------------------------------------ cost
+def test_runtime_step_cost_is_measured():
+    times = bench.measure(num_agents=4, steps=60, conflict=True)
+    assert set(times) >= {"estimate", "observe", "actor", "gain", "filter", "controller.step"}
+    assert times["qp_fraction"].mean() > 0.5 and np.all(times["controller.step"] > 0)
+    assert "controller.step" in bench.table(4, 40)

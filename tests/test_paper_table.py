@@ -1,0 +1,38 @@
+"""experiments/paper_table.py --quick runs end to end: train, evaluate (with and without the filter), tabulate."""
+
+import csv
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("paper_table", ROOT / "experiments" / "paper_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_quick_table_runs_end_to_end(tmp_path):
+    mod = _module()
+    out = tmp_path / "results"
+    # One scenario and three methods keep CI short; the full command runs all of them the same way.
+    assert mod.main(["--quick", "--methods", "mappo,attention_cbf,mpc", "--scenarios", "race",
+                     "--out", str(out), "--runs", str(tmp_path / "runs")]) == 0
+    rows = list(csv.DictReader((out / "paper_table_quick.csv").open()))
+    assert [(r["method"], r["variant"]) for r in rows] == [("mappo", ""), ("mappo", "+ filter"),
+                                                           ("attention_cbf", ""), ("mpc", "")]
+    for r in rows:
+        assert 0.0 <= float(r["race_success"]) <= 1.0 and r["obstacles_success"] == ""
+    md = (out / "paper_table_quick.md").read_text()
+    assert "| MAPPO | – | " in md and "50 / 40 / 30" in md and "95 / 0" in md
+
+
+def test_bad_method_is_a_clear_error(capsys):
+    with pytest.raises(SystemExit) as e:
+        _module().parse_args(["--methods", "ppo2"])
+    assert e.value.code == 2
+    assert "invalid method 'ppo2'" in capsys.readouterr().err
