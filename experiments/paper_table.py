@@ -76,7 +76,7 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
         mpc_config = mpc.MPCConfig(samples=16, horizon=5) if args.quick else mpc.MPCConfig()
         rec = mpc.rollout_mpc(env, mpc_config, args.episodes, jax.random.PRNGKey(10_000 + args.seed))
         result = evaluate.summarize({k: jax.device_get(v) for k, v in rec.items()})
-        result.update(method=method, variant="", scenario=scenario, train_seconds=0.0,
+        result.update(method=method, variant="", scenario=scenario, episodes=args.episodes, train_seconds=0.0,
                       eval_seconds=time.perf_counter() - t0)
         return [result]
 

@@ -156,6 +156,9 @@ def test_eval_errors_are_clear(tmp_path):
     if not evaluate.PRETRAINED.exists():
         with pytest.raises(checkpoint.CheckpointError, match="no pretrained policy ships yet"):
             evaluate.evaluate_checkpoint("pretrained")
+    else:  # the shipped policy loads and flies (short episodes keep this fast)
+        r = evaluate.evaluate_checkpoint("pretrained", episodes=2, env_overrides=["episode_seconds=0.5"])
+        assert r["episodes"] == 2 and r["scenario"] == "race" and r["trained_updates"] > 0
 
 
 def test_cli_reports_bad_values_in_one_line(capsys):

@@ -242,7 +242,11 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
         lanes = (np.arange(n) - (n - 1) / 2) * min(1.0, width / max(n - 1, 1))
         offs = np.stack([np.zeros(n), lanes], -1)
     elif cfg.start_formation == "column":
-        offs = np.stack([np.arange(n) * cfg.start_spacing, np.zeros(n)], -1)
+        # Single file up to 4 drones; more fly in side-by-side files at most 4 deep, so the column stays
+        # on the straight stretch behind the start.
+        files = math.ceil(n / 4)
+        row, lane = np.arange(n) // files, np.arange(n) % files
+        offs = np.stack([row * cfg.start_spacing, (lane - (files - 1) / 2) * cfg.start_spacing], -1)
     else:
         offs = _start_grid(n, cfg.start_spacing)
     ks = jax.random.split(k_start, 2)

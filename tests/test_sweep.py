@@ -1,0 +1,115 @@
+"""Sweeps: bad files fail before compiling; a vmapped sweep resumes and equals its trials run one by one."""
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from aswarm import cli, sweep
+from aswarm.agents import checkpoint, evaluate, hparams
+from aswarm.agents.train import make_train
+
+CI_SWEEP = Path(__file__).resolve().parent.parent / "sweeps" / "ci_tiny.toml"
+HEAD = 'scenario = "hover"\ntotal_steps = 128\nseeds = [0, 1]\n'
+BAD = [
+    (HEAD + "[grid]\nactor_lrr = [1e-3]\n", "unknown field 'actor_lrr'"),
+    (HEAD + "[grid]\n", "[grid] is empty"),
+    (HEAD + "[grid]\nactor_lr = []\n", "non-empty list"),
+    (HEAD + '[grid]\nactor_lr = ["fast"]\n', "invalid value 'fast' (str); allowed: a finite number"),
+    (HEAD + "[grid]\nnum_envs = [8.5]\n", "allowed: an integer"),
+    (HEAD + "[grid]\nenv.bogus = [1.0]\n", "unknown env field 'bogus'"),
+    (HEAD + "[grid]\ngain_min = [3.0]\n", "need 0 < min < max"),
+    (HEAD + "[random]\nsamples = 0\nclip = {low = 0.1, high = 0.3}\n", "invalid samples"),
+    (HEAD + "[random]\nsamples = 2\nnum_envs = {low = 8, high = 16}\n", "a range needs a float field"),
+    (HEAD + "[random]\nsamples = 2\nactor_lr = {low = 0.0, high = 1e-3, log = true}\n", "low > 0 for log"),
+    (HEAD, "needs exactly one of [grid] or [random]"),
+    ('total_steps = 128\nseeds = [0]\n[grid]\nclip = [0.1]\n', "missing scenario"),
+    ('scenario = "hover"\ntotal_steps = 128\nseeds = [0, 0]\n[grid]\nclip = [0.1]\n', "distinct"),
+    ("scenario = [", "not valid TOML"),
+]
+
+
+@pytest.mark.parametrize("text,message", BAD)
+def test_bad_sweep_file_fails_before_compile(tmp_path, monkeypatch, capsys, text, message):
+    def no_compile(*args, **kwargs):
+        raise AssertionError("compiled before the sweep file was checked")
+
+    monkeypatch.setattr(jax, "jit", no_compile)
+    monkeypatch.setattr("aswarm.agents.train.make_train", no_compile)
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert cli.main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_random_search_is_reproducible_and_log_uniform():
+    doc = {"scenario": "hover", "total_steps": 128, "seeds": [0], "sample_seed": 3,
+           "random": {"samples": 6, "actor_lr": {"low": 1e-4, "high": 1e-2, "log": True}, "clip": [0.1, 0.2],
+                      "env": {"collision_penalty": [50.0, 100.0]}}}
+    a, b = sweep.parse(doc), sweep.parse(doc)
+    assert a.configs == b.configs and len(a.configs) == 6
+    lrs = [c.actor_lr for c in a.configs]
+    assert all(1e-4 <= x <= 1e-2 for x in lrs) and len(set(lrs)) == 6
+    assert {c.clip for c in a.configs} <= {0.1, 0.2}
+    # Env fields are baked into the environment's code: each value is its own compiled group.
+    gs = sweep.groups(a)
+    assert len(gs) == len({c.env_overrides for c in a.configs})
+    assert all(set(g.sweep_fields) <= {"actor_lr", "clip"} for g in gs)
+
+
+def test_tiny_sweep_resumes_and_equals_trials_run_one_by_one(tmp_path):
+    spec = sweep.load(CI_SWEEP)
+    assert len(spec.configs) == 2 and spec.seeds == (0, 1)
+    (group,) = sweep.groups(spec)
+    assert group.sweep_fields == ("actor_lr",) and len(group.trials) == 4
+    out = tmp_path / "sweep"
+    # "Killed" after 2 of the 4 updates: the stacked state is checkpointed, no report yet.
+    assert sweep.run(spec, out, progress=False, max_updates=2, log=lambda _: None) is None
+    assert checkpoint.manager(out / "groups" / "g0").latest_step() == 2
+    results = sweep.run(spec, out, progress=False, log=lambda _: None)  # resumes at update 2
+
+    for config_index, config in enumerate(spec.configs):
+        _, init, chunk, _ = make_train(config)  # the plain trainer, hyperparameters as constants
+        init_fn, chunk_fn = jax.jit(init), jax.jit(chunk, static_argnums=1)
+        for seed in spec.seeds:
+            ts, metrics = chunk_fn(init_fn(jax.random.PRNGKey(seed)), config.num_updates)
+            run = out / "trials" / f"c{config_index:02d}-s{seed}"
+            rows = sweep.read_rows(run)
+            assert [r["update"] for r in rows] == [1, 2, 3, 4]
+            for name, values in metrics.items():
+                np.testing.assert_allclose([r[name] for r in rows], np.asarray(values), rtol=1e-5, atol=1e-5,
+                                           err_msg=f"{run.name} {name}")
+            # What `aswarm eval --checkpoint` reads: the trial's own config and policy.
+            trained, restored = evaluate.load(run)
+            assert trained.actor_lr == config.actor_lr and trained.seed == seed
+            assert int(restored["update"]) == 4
+            for a, b in zip(jax.tree.leaves(restored["params"]), jax.tree.leaves(ts.params)):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
+
+    assert [e["rank"] for e in results["configs"]] == [1, 2]
+    assert {e["label"] for e in results["configs"]} == set(spec.labels)
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["configs"][0]["label"] == results["configs"][0]["label"]
+    assert (out / "results.csv").read_text().count("\n") == 3
+    assert (out / "curves.png").stat().st_size > 10_000 and (out / "trials" / "c00-s0" / "curves.png").exists()
+    # Done groups are skipped: running again compiles nothing and gives the same report.
+    again = sweep.run(spec, out, progress=False, log=lambda _: None)
+    assert [e["label"] for e in again["configs"]] == [e["label"] for e in results["configs"]]
+
+
+def test_a_different_sweep_in_the_same_folder_is_refused(tmp_path):
+    spec = sweep.load(CI_SWEEP)
+    (tmp_path / "sweep.json").write_text(json.dumps({"source": "another sweep"}))
+    with pytest.raises(ValueError, match="holds a different sweep"):
+        sweep.run(spec, tmp_path, progress=False)
+
+
+def test_hparams_reject_fields_that_change_shapes():
+    with pytest.raises(ValueError, match="invalid sweep field 'num_envs'"):
+        hparams.check_fields(["num_envs"])
+    with pytest.raises(ValueError, match="exactly the sweep fields"):
+        hparams.check_values(("actor_lr",), {})
