@@ -335,7 +335,7 @@ def _truncate(path: Path, update: int) -> None:
         path.write_text("".join(r + "\n" for r in rows))
 
 
-def _run_group(spec: SweepSpec, group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
+def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
                log: Callable[[str], None]) -> dict:
     """Train one group to its budget (or ``max_updates`` more); returns its timing and whether it finished."""
     from tqdm import tqdm
@@ -407,7 +407,9 @@ def _run_group(spec: SweepSpec, group: Group, out: Path, progress: bool, max_upd
         # The trial's own config holds its values: saved without hparams, the checkpoint is a plain run's,
         # so `aswarm eval`, `aswarm export` and `aswarm train --resume` read it.
         trial_state = sharding.for_checkpoint(hparams.index(final, i).replace(hparams={}))
-        checkpoint.save(checkpoint.manager(d), update, trial_state)
+        trial_mngr = checkpoint.manager(d)
+        if trial_mngr.latest_step() != update:  # not saved already by a run killed before done.json
+            checkpoint.save(trial_mngr, update, trial_state)
         if primary:
             runner.plot_curves(d)
             if not finite[i]:
@@ -442,10 +444,14 @@ def run(spec: SweepSpec, out: str | Path, progress: bool = True, max_updates: in
         log = lambda _: None  # noqa: E731
     gs = groups(spec)
     for g in gs:  # fail before compiling anything
+        num_envs = g.trials[0].config.num_envs
         if mesh is None:
-            sharding.make_mesh(len(g.trials), g.trials[0].config.num_envs)
+            sharding.make_mesh(len(g.trials), num_envs)
+        elif num_envs % dict(mesh.shape)["env"] or len(g.trials) % dict(mesh.shape)["trial"]:
+            raise ValueError(f"invalid mesh {dict(mesh.shape)} for {len(g.trials)} trials of {num_envs} worlds: "
+                             "allowed: axes that divide them")
     _check_plan(spec, out)
-    timings = [_run_group(spec, g, out, progress, max_updates, mesh, log) for g in gs]
+    timings = [_run_group(g, out, progress, max_updates, mesh, log) for g in gs]
     if not all(t["finished"] for t in timings):
         return None
     results = summarize(spec, out)

@@ -3,10 +3,16 @@
 The train state is laid out over a 2-D ``jax.sharding.Mesh`` with axes ``("trial", "env")``:
 a sweep's stacked trials are split along ``trial`` (they never talk to each other), and each
 trial's batch of worlds along ``env``. Parameters and optimizer state are replicated over ``env``.
-The trainer itself is unchanged: ``jit`` with these in/out shardings lets XLA partition the
-rollout by world and turn the minibatch means of the losses into cross-device all-reduces, so
-the gradients are averaged across devices and every device applies the same update. The numbers
-are those of one device, up to the order of floating-point sums.
+``jit`` with these in/out shardings lets XLA partition the rollout by world. The learner keeps
+one device's algorithm: the rollout is gathered for the global minibatch shuffle, then
+``rows_constraint`` (``make_train(shard_rows=...)``) splits each minibatch's rows over the
+devices, each takes the gradient of its rows, and an all-reduce averages them, so every device
+applies the same update. The numbers are those of one device up to the order of floating-point
+sums (tests/test_sharding.py).
+
+A plain training run is a sweep of one configuration and one seed; ``runner.py`` (``aswarm train``)
+still runs on one device, and :func:`sharded_fns` with :func:`rows_constraint` is what it needs
+to lay itself out the same way.
 
 Several hosts: call :func:`initialize` (``jax.distributed.initialize``) first in every process;
 ``jax.devices()`` then lists the devices of all hosts and the same code runs on all of them::

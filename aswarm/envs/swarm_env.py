@@ -12,8 +12,6 @@ finished or any drone collides, and is truncated at ``episode_seconds``.
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,70 +23,7 @@ from aswarm.envs.controller import velocity_controller
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
 from aswarm.envs.mjx_import import mjx
 from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at, geometry, sample_layout
-
-OWN_FIELDS = (
-    ("target_rel", 3, "m, world: drone position minus its current gate centre or goal"),
-    ("target_normal", 3, "unit, world: direction of passage of the current gate (0 for a goal)"),
-    ("next_target_rel", 3, "m, world: drone position minus the following gate (the current one if last)"),
-    ("altitude", 1, "m above the floor"),
-    ("quat", 4, "body->world, [w, x, y, z]"),
-    ("vel", 3, "m/s, world"),
-    ("ang_vel", 3, "rad/s, body"),
-)
-CYL_FIELDS = (
-    ("rel_xy", 2, "m, world: cylinder centre minus drone position"),
-    ("clearance", 1, "m: horizontal gap between drone sphere and cylinder surface"),
-    ("vel_xy", 2, "m/s, world: cylinder velocity"),
-    ("present", 1, "1 if the cylinder exists this episode, else 0 (all its features are 0)"),
-)
-NBR_FIELDS = (
-    ("rel_pos", 3, "m, world: neighbour position minus drone position"),
-    ("rel_vel", 3, "m/s, world: neighbour velocity minus drone velocity"),
-    ("present", 1, "1 if the neighbour is still flying, else 0 (all its features are 0)"),
-)
-
-
-@dataclasses.dataclass(frozen=True)
-class ObsLayout:
-    """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""
-
-    num_cylinders: int
-    num_neighbours: int
-    own_dim: int = sum(f[1] for f in OWN_FIELDS)
-    cyl_dim: int = sum(f[1] for f in CYL_FIELDS)
-    nbr_dim: int = sum(f[1] for f in NBR_FIELDS)
-
-    @property
-    def size(self) -> int:
-        return self.own_dim + self.num_cylinders * self.cyl_dim + self.num_neighbours * self.nbr_dim
-
-    @property
-    def own_slices(self) -> dict[str, slice]:
-        """Name -> slice of each own-state field inside the ``own`` part."""
-        out, off = {}, 0
-        for name, size, _ in OWN_FIELDS:
-            out[name] = slice(off, off + size)
-            off += size
-        return out
-
-    def split(self, obs: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """[..., size] -> own [..., own_dim], cylinders [..., M, cyl_dim], neighbours [..., n-1, nbr_dim]."""
-        a = self.own_dim
-        b = a + self.num_cylinders * self.cyl_dim
-        lead = obs.shape[:-1]
-        return (obs[..., :a], obs[..., a:b].reshape(*lead, self.num_cylinders, self.cyl_dim),
-                obs[..., b:].reshape(*lead, self.num_neighbours, self.nbr_dim))
-
-    def describe(self) -> list[dict]:
-        """Field-by-field description with offsets, units and frames (for export manifests)."""
-        out, off = [], 0
-        for group, fields, count in (("own", OWN_FIELDS, 1), ("cylinder", CYL_FIELDS, self.num_cylinders),
-                                     ("neighbour", NBR_FIELDS, self.num_neighbours)):
-            for k in range(count):
-                for name, size, unit in fields:
-                    out.append(dict(group=group, index=k, name=name, offset=off, size=size, meaning=unit))
-                    off += size
-        return out
+from aswarm.obs_layout import CYL_FIELDS, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401  (re-exported)
 
 
 @struct.dataclass
