@@ -497,26 +497,10 @@ def time_per_step(env: SwarmEnv, config: MPCConfig, worlds: int = 256, repeats: 
             "worlds": worlds}
 
 
-def summarize(rec: dict[str, jax.Array]) -> dict[str, float]:
-    """Success and collision rates with 95 % Wilson intervals, and mean episode figures."""
-    from aswarm.agents.evaluate import wilson  # evaluate will import this module: avoid the cycle
-
-    rec = {k: np.asarray(v) for k, v in rec.items()}
-    n = len(rec["success"])
-    out: dict[str, float] = {"episodes": n}
-    for name in ("success", "collision"):
-        hits = float(rec[name].sum())
-        out[f"{name}_rate"] = hits / n
-        out[f"{name}_ci95"] = wilson(hits, n)
-    for name in ("drone_success", "drone_collision", "progress", "min_clearance", "mission_time", "mean_speed",
-                 "collision_obstacle", "collision_drone", "collision_gate", "collision_floor", "collision_bounds"):
-        out[name] = float(rec[name].mean())
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     """``python -m aswarm.agents.mpc --scenario race --episodes 64``: success and collision rates of the MPC."""
     from aswarm import config_args, envs
+    from aswarm.agents.evaluate import summarize
 
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("--scenario", default="race")
@@ -537,9 +521,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("success", "collision"):
         lo, hi = s[f"{name}_ci95"]
         print(f"  {name + ' rate':16s} {100 * s[name + '_rate']:6.1f} %   95% CI [{100 * lo:.1f}, {100 * hi:.1f}]")
-    for name, value in s.items():
-        if name not in ("episodes",) and not name.startswith(("success", "collision_rate", "collision_ci")):
-            print(f"  {name:18s} {value:8.3f}")
+    for name, value in s.items():  # the other figures of `aswarm eval`'s report
+        if isinstance(value, float) and name not in ("success_rate", "collision_rate"):
+            print(f"  {name:24s} {value:8.3f}")
     if args.bench:
         b = time_per_step(env, config)
         print(f"  planning: {b['us_per_drone_step']:.1f} µs per drone-step at {b['worlds']} worlds, "
