@@ -23,7 +23,6 @@ Several hosts: call :func:`initialize` (``jax.distributed.initialize``) first in
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 
@@ -47,26 +46,6 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
         raise ValueError(f"invalid process_id={process_id}: allowed: 0 to {num_processes - 1}")
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
                                process_id=process_id)
-    if jax.process_count() > 1:
-        _put_models_on_local_device()
-
-
-def _put_models_on_local_device() -> None:
-    """``mjx.put_model``, ``make_data`` and ``put_data`` default to ``jax.devices()[0]``, which on every process
-    but 0 is another host's device ("Cross-host transfers are not supported"): default them to this
-    process's first device. (The lasting fix is ``device=jax.local_devices()[0]`` where aswarm calls them.)"""
-    from aswarm.envs.mjx_import import mjx
-
-    for name in ("put_model", "make_data", "put_data"):
-        fn = getattr(mjx, name)
-        if getattr(fn, "_aswarm_local", False):
-            continue
-
-        def local(*args, _fn=fn, device=None, **kwargs):
-            return _fn(*args, device=device or jax.local_devices()[0], **kwargs)
-
-        local._aswarm_local = True
-        setattr(mjx, name, functools.wraps(fn)(local))
 
 
 def make_mesh(num_trials: int, num_envs: int, devices: list | None = None) -> Mesh:

@@ -87,7 +87,8 @@ def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: Crazyflie
 def physics_model(num_agents: int, sim_freq: int, cf: CrazyflieParams = CrazyflieParams()):
     """(mujoco.MjModel, mjx.Model) of ``num_agents`` drones stepped at ``sim_freq`` Hz."""
     m = scene.build_model(num_agents, sim_freq, cf, physics_only=True)
-    return m, mjx.put_model(m)
+    # This process's first device: jax.devices()[0], MJX's default, belongs to another host in multi-host runs.
+    return m, mjx.put_model(m, device=jax.local_devices()[0])
 
 
 @struct.dataclass
@@ -133,7 +134,8 @@ def simulate_rpm(
 @functools.partial(jax.jit, static_argnums=(3,))
 def _simulate(mx: mjx.Model, initial: DroneState, rpm: jax.Array, cf: CrazyflieParams) -> Trajectory:
     n = rpm.shape[1]
-    data = set_drone_state(mjx.make_data(mx), jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), initial))
+    data0 = mjx.make_data(mx, device=jax.local_devices()[0])
+    data = set_drone_state(data0, jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), initial))
 
     def body(d, r):
         d = physics_step(mx, d, r, cf)

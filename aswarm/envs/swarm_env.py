@@ -67,7 +67,7 @@ class SwarmEnv:
         self.geometry = geometry(config)  # raises if the obstacles cannot be placed
         self.kind = SCENARIOS[config.scenario].kind
         self.mj_model, self.mjx_model = physics_model(config.num_agents, config.sim_freq, config.cf)
-        self._data0 = mjx.make_data(self.mjx_model)
+        self._data0 = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])  # see physics_model
         n = config.num_agents
         self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=n - 1)
         stagger = config.start_interval if self.kind == "track" else 0.0
