@@ -85,8 +85,8 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
         fields["total_steps"] = args.total_steps
     config = TrainConfig(scenario=scenario, method=method, seed=args.seed, env_overrides=env_overrides, **fields)
     run_dir = args.runs / f"{scenario}-{method}-seed{args.seed}"
-    done = (run_dir / "checkpoints").exists() and runner.read_metrics(run_dir) and \
-        runner.read_metrics(run_dir)[-1]["update"] >= config.num_updates
+    logged = runner.read_metrics(run_dir) if (run_dir / "checkpoints").exists() else []
+    done = bool(logged) and logged[-1]["update"] >= config.num_updates
     if not done:  # a finished run is reused; an interrupted one resumes
         resume = (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir())
         runner.train(None if resume else config, run_dir, resume=resume, progress=not args.quick)
