@@ -8,10 +8,16 @@ from __future__ import annotations
 
 import dataclasses
 
+# target_dir is the offset over max(distance, this) (m): finite at the goal itself.
+MIN_TARGET_DIST = 1e-3
+
 OWN_FIELDS = (
     ("target_rel", 3, "m, world: drone position minus its current gate centre or goal"),
     ("target_normal", 3, "unit, world: direction of passage of the current gate (0 for a goal)"),
     ("next_target_rel", 3, "m, world: drone position minus the following gate (the current one if last)"),
+    ("target_dir", 3, "unit, world: from the drone towards its current gate centre or goal"),
+    ("prev_gate_rel", 3, "m, world: drone position minus the gate it passed last (0 before the first gate, goals)"),
+    ("prev_gate_normal", 3, "unit, world: direction of passage of that gate (0 when there is none)"),
     ("altitude", 1, "m above the floor"),
     ("quat", 4, "body->world, [w, x, y, z]"),
     ("vel", 3, "m/s, world"),

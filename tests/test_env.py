@@ -99,6 +99,13 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
                        ang_vel=jnp.zeros((1, 3)))
     s = s.replace(data=set_drone_state(s.data, start))
     step = jax.jit(env.step)
+    f = env.obs_layout.own_slices
+    s = step(s, (normal * 1.0)[None])
+    # Before the plane: no gate passed yet, and the direction points at gate 0's centre.
+    np.testing.assert_array_equal(s.obs[0, f["prev_gate_rel"]], 0.0)
+    np.testing.assert_array_equal(s.obs[0, f["prev_gate_normal"]], 0.0)
+    to_gate = np.asarray(g - s.data.qpos[:3])
+    np.testing.assert_allclose(s.obs[0, f["target_dir"]], to_gate / np.linalg.norm(to_gate), atol=1e-5)
     rewards = []
     for _ in range(30):
         s = step(s, (normal * 1.0)[None])
@@ -106,6 +113,9 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
     assert int(s.tracker.target[0]) == 1 and not bool(s.tracker.collided[0])
     assert max(rewards) > env.config.gate_bonus * 0.9
     np.testing.assert_allclose(s.obs[0, :3], s.data.qpos[:3] - s.layout.gate_pos[1], atol=1e-5)
+    # Past it: gate 0 is now the gate passed last, with its direction of passage.
+    np.testing.assert_allclose(s.obs[0, f["prev_gate_rel"]], s.data.qpos[:3] - g, atol=1e-5)
+    np.testing.assert_allclose(s.obs[0, f["prev_gate_normal"]], normal, atol=1e-6)
 
 
 def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
@@ -127,7 +137,7 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
 
 
 def test_staggered_track_start_holds_each_drone_until_its_release_time():
-    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1)
+    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50)
     s = env.reset(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     start = np.asarray(s.layout.start_pos)

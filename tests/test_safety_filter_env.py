@@ -14,9 +14,10 @@ from aswarm.envs.dynamics import DroneState, set_drone_state
 MARGIN = 0.05
 
 
-def _run(env, state, command, use_filter, steps=150, gain=2.0, margin=MARGIN, log=None):
+def _run(env, state, command, use_filter, seconds=3.0, gain=2.0, margin=MARGIN, log=None):
     step = jax.jit(env.step)
     c = env.config
+    steps = round(seconds * c.policy_freq)
     filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], gain),
                                                            c.max_speed, c.cf.collision_radius, margin,
                                                            c.gate_half_opening, c.gate_bar))
@@ -64,7 +65,7 @@ def test_a_centred_gate_passage_is_only_slowed_by_the_gate_rows():
     the margin 0.05: v <= gain * h * dist / d along the axis) but never push it sideways."""
     env, s, cmd = _gate_approach(0.0)
     log = []
-    s = _run(env, s, cmd, True, steps=60, log=log)
+    s = _run(env, s, cmd, True, seconds=1.2, log=log)
     assert int(s.tracker.target[0]) == 1 and not bool(s.tracker.collided[0])
     axis = np.asarray(cmd[0]) / np.linalg.norm(cmd[0])
     u = np.array([np.asarray(r.u[0]) for r in log])
@@ -72,6 +73,22 @@ def test_a_centred_gate_passage_is_only_slowed_by_the_gate_rows():
     assert along.min() > 0.8
     np.testing.assert_allclose(u - np.outer(along, axis), 0.0, atol=0.03)  # the drone drifts mm off-axis
     assert not bool(log[0].intervened[0])  # 1.2 m out: untouched
+
+
+@pytest.mark.parametrize("use_filter", [True, False])
+def test_turning_into_the_gate_just_passed_is_stopped_only_with_the_filter(use_filter):
+    """Right after the plane the target is the next gate; the frame behind the drone must still count."""
+    env, s, _ = _gate_approach(0.0)
+    g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
+    normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
+    side = jnp.array([-jnp.sin(yaw), jnp.cos(yaw), 0.0])
+    s = s.replace(tracker=s.tracker.replace(target=jnp.ones_like(s.tracker.target)))
+    s = _place(env, s, g + 0.08 * normal + 0.1 * side)
+    s = _run(env, s, (-0.6 * normal + 1.5 * side)[None], use_filter, seconds=1.0)  # back and sideways, at the bar
+    if use_filter:
+        assert not bool(s.tracker.collided[0])
+    else:
+        assert int(s.tracker.collision_kind[0]) == col.GATE
 
 
 @pytest.mark.parametrize("use_filter", [True, False])
@@ -92,14 +109,14 @@ def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_fil
 def test_two_drones_flying_head_on_keep_apart_with_the_filter():
     env = envs.make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
-    s = _run(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), True, steps=120)
+    s = _run(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), True, seconds=2.4)
     assert not bool(jnp.any(s.tracker.collided))
     assert float(jnp.linalg.norm(s.data.qpos[:3] - s.data.qpos[7:10])) > 2 * env.config.cf.collision_radius
 
 
 def test_descending_into_the_floor_is_stopped():
     env = envs.make("hover", layout_jitter=0.0)
-    s = _run(env, env.reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, steps=150)
+    s = _run(env, env.reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
     assert not bool(s.tracker.collided[0])
     assert not bool(s.tracker.finished[0])  # still flying, not a goal reached on the way down
     assert float(s.data.qpos[2]) > env.config.cf.collision_radius

@@ -391,8 +391,10 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     gate's centre and direction), so the flight side can run the very same filter from its own
     observations. Positions are taken in a frame centred on the drone's horizontal position, with
     z the altitude above the floor. ``gain`` [..., n] is one class-K gain per drone, applied to all
-    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | gate frame 5]``; the gate rows
-    are present when ``gate_bar > 0`` and the observation has a gate (non-zero direction).
+    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | current gate 5 | previous gate 5]``;
+    the gate rows are present when ``gate_bar > 0`` and the observation has that gate (non-zero
+    direction). The gate passed last is kept: right after its plane a drone turning towards the next
+    gate can clip its frame from behind.
     """
     own, cyl, nbr = layout.split(obs)
     f = layout.own_slices
@@ -403,6 +405,9 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     gate_center = pos - own[..., f["target_rel"]]
     gate_normal = own[..., f["target_normal"]]
     gate_present = (jnp.sum(gate_normal**2, -1) > 0.25) & (gate_bar > 0)
+    prev_center = pos - own[..., f["prev_gate_rel"]]
+    prev_normal = own[..., f["prev_gate_normal"]]
+    prev_present = (jnp.sum(prev_normal**2, -1) > 0.25) & (gate_bar > 0)
     rel = cyl[..., 0:2]
     cyl_radius = jnp.linalg.norm(rel, axis=-1) - cyl[..., 2] - drone_radius
     cyl_present = cyl[..., 5] > 0.5
@@ -410,16 +415,17 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     nbr_vel = nbr[..., 3:6] + vel[..., None, :]
     nbr_present = nbr[..., 6] > 0.5
 
-    def one(p, v, cc, cr, cv, cp, nq, nv, npres, gc, gn, gp, g, u):
+    def one(p, v, cc, cr, cv, cp, nq, nv, npres, gc, gn, gp, pc, pn, pp, g, u):
         con = barrier_constraints(p, v, cc, cr, cv, cp, nq, nv, npres, g, drone_radius=drone_radius,
                                   margin=margin)
-        gate = gate_constraints(p, gc, gn, gp, g, half_opening=gate_half_opening, bar=gate_bar,
-                                drone_radius=drone_radius, margin=margin)
-        rows = [jnp.concatenate(x, 0) for x in zip(con, gate)]
+        gates = [gate_constraints(p, c, nrm, present, g, half_opening=gate_half_opening, bar=gate_bar,
+                                  drone_radius=drone_radius, margin=margin)
+                 for c, nrm, present in ((gc, gn, gp), (pc, pn, pp))]
+        rows = [jnp.concatenate(x, 0) for x in zip(con, *gates)]
         return filter_velocity(u, rows[0], rows[1], rows[2], u_max, max_iter=max_iter)
 
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
     return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present,
-              gate_center, gate_normal, gate_present, gain, cmd)
+              gate_center, gate_normal, gate_present, prev_center, prev_normal, prev_present, gain, cmd)

@@ -47,7 +47,7 @@ class EnvConfig:
     # Rates (Hz). Physics >= 240 Hz; the controller and the policy divide it.
     sim_freq: int = 250
     ctrl_freq: int = 250
-    policy_freq: int = 50
+    policy_freq: int = 25  # 10 Hz: the command held 0.1 s outran the filter (README)
     episode_seconds: float = 40.0
     max_speed: float = 2.0  # m/s, per-axis clip of the velocity command
     # Reward and cost.

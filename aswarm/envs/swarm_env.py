@@ -23,7 +23,12 @@ from aswarm.envs.controller import velocity_controller
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
 from aswarm.envs.mjx_import import mjx
 from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at, geometry, sample_layout
-from aswarm.obs_layout import CYL_FIELDS, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401  (re-exported)
+from aswarm.obs_layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+
+
+def _horizontal(yaw: jax.Array) -> jax.Array:
+    """[...] yaw -> [..., 3] horizontal unit vectors (a gate's direction of passage)."""
+    return jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)], -1)
 
 
 @struct.dataclass
@@ -263,12 +268,19 @@ class SwarmEnv:
         target = self._target_pos(layout, k)
         nxt = self._target_pos(layout, k + 1)
         if self.kind == "track":
-            yaw = layout.gate_yaw[k]
-            normal = jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)], -1)
+            normal = _horizontal(layout.gate_yaw[k])
+            # The gate just passed stays in view: a drone turning towards the next gate right after the
+            # plane can still clip this frame from behind (it did, at low filter gains, see README).
+            kp = jnp.maximum(tr.target - 1, 0)
+            has_prev = (tr.target >= 1)[:, None]
+            prev_rel = jnp.where(has_prev, drones.pos - layout.gate_pos[kp], 0.0)
+            prev_normal = jnp.where(has_prev, _horizontal(layout.gate_yaw[kp]), 0.0)
         else:
-            normal = jnp.zeros((n, 3))
-        own = jnp.concatenate([drones.pos - target, normal, drones.pos - nxt, drones.pos[:, 2:],
-                               drones.quat, drones.vel, drones.ang_vel], -1)
+            normal = prev_rel = prev_normal = jnp.zeros((n, 3))
+        to_target = target - drones.pos
+        direction = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), MIN_TARGET_DIST)
+        own = jnp.concatenate([drones.pos - target, normal, drones.pos - nxt, direction, prev_rel, prev_normal,
+                               drones.pos[:, 2:], drones.quat, drones.vel, drones.ang_vel], -1)
 
         cyl_pos, cyl_vel = cylinders_at(layout, t)
         rel = cyl_pos[None] - drones.pos[:, None, :2]  # [n, M, 2]

@@ -1,7 +1,7 @@
 """The CBF safety filter in numpy: the same barriers and the same QP as ``aswarm.agents.cbf_filter``.
 
 Barriers (one row ``a_j · u ≥ b_j`` per hazard, see the JAX module for their derivation), rows laid
-out ``[cylinders M | neighbours K | floor 1 | gate frame 5]``, and the QP
+out ``[cylinders M | neighbours K | floor 1 | gate frame 5 | previous gate 5]``, and the QP
 
     min_{u, s}  ||u − u_nom||² + ρ s²
     s.t.        â_j · u + s ≥ b̂_j   (present rows, normalised to ||â_j|| = 1)
@@ -409,12 +409,33 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     b_pt = (n_pt * ref).sum(-1) - share * gamma * h_pt
     present = np.concatenate([cyl[:, :, 5], nbr[:, :, 6]], 1) > 0.5
 
-    # The current gate's frame: 4 edges and the post, as round bars.
-    target_rel, normal = own[:, f["target_rel"]], own[:, f["target_normal"]]
-    center = -target_rel
+    # The current gate's frame and the one passed last: 4 edges and the post each, as round bars.
+    n_cur, h_cur, on_cur = _gate_rows(own[:, f["target_rel"]], own[:, f["target_normal"]], alt,
+                                      gate_half_opening, gate_bar, drone_radius, margin)
+    n_prev, h_prev, on_prev = _gate_rows(own[:, f["prev_gate_rel"]], own[:, f["prev_gate_normal"]], alt,
+                                         gate_half_opening, gate_bar, drone_radius, margin)
+
+    # Rows [cylinders M | neighbours K | floor 1 | gate 5 | previous gate 5]; a row with no direction is ignored.
+    a_hat = np.concatenate([n_pt, np.broadcast_to(_UP, (P, 1, 3)), n_cur, n_prev], 1)
+    b_hat = np.concatenate([b_pt, gamma * (floor_z + drone_radius + margin - alt[:, None]), -gamma * h_cur,
+                            -gamma * h_prev], 1)
+    valid = np.concatenate([present & ok, np.ones((P, 1), bool), on_cur, on_prev], 1)
+    res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), a_hat, b_hat, valid, np.full(3, float(u_max)), rho,
+                 max_iter, tol)
+    return _reshape(res, lead)
+
+
+def _gate_rows(rel: np.ndarray, normal: np.ndarray, alt: np.ndarray, half_opening: float, bar: float,
+               drone_radius: float, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit rows [P, 5, 3], barrier values [P, 5] and validity [P, 5] of one gate's 5 bars.
+
+    rel [P, 3] drone minus gate centre and normal [P, 3] as observed; the drone sits at (0, 0, alt).
+    """
+    P = rel.shape[0]
+    center = -rel
     center[:, 2] += alt
     yaw = np.arctan2(normal[:, 1], normal[:, 0])
-    c = gate_half_opening + gate_bar / 2
+    c = half_opening + bar / 2
     lat = np.stack([-np.sin(yaw), np.cos(yaw), np.zeros(P)], -1)
     corners = center[:, None, :] + c * _CORNERS[None, :, :1] * lat[:, None, :]
     corners[:, :, 2] += c * _CORNERS[:, 1]
@@ -427,30 +448,11 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     ab = e - a
     t = np.clip(((pos - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
     dg = pos - (a + t[:, :, None] * ab)
-    sqg = (dg * dg).sum(-1)
-    okg = sqg > _EPS**2
-    distg = np.sqrt(np.where(okg, sqg, 1.0))
-    n_gate = dg * (okg / distg)[:, :, None]
-    h_gate = np.where(okg, distg, 0.0) - (gate_bar / 2 + drone_radius + margin)
-    gate_on = ((normal * normal).sum(-1) > 0.25) & (gate_bar > 0)
-
-    # Rows [cylinders M | neighbours K | floor 1 | gate 5]; a row with no direction is ignored.
-    f0 = M + K
-    a_hat = np.empty((P, f0 + 6, 3))
-    a_hat[:, :f0] = n_pt
-    a_hat[:, f0] = _UP
-    a_hat[:, f0 + 1:] = n_gate
-    b_hat = np.empty((P, f0 + 6))
-    b_hat[:, :f0] = b_pt
-    b_hat[:, f0] = gamma[:, 0] * (floor_z + drone_radius + margin - alt)
-    b_hat[:, f0 + 1:] = -gamma * h_gate
-    valid = np.empty((P, f0 + 6), bool)
-    valid[:, :f0] = present & ok
-    valid[:, f0] = True
-    valid[:, f0 + 1:] = gate_on[:, None] & okg
-    res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), a_hat, b_hat, valid, np.full(3, float(u_max)), rho,
-                 max_iter, tol)
-    return _reshape(res, lead)
+    sq = (dg * dg).sum(-1)
+    ok = sq > _EPS**2
+    dist = np.sqrt(np.where(ok, sq, 1.0))
+    on = ((normal * normal).sum(-1) > 0.25) & (bar > 0)
+    return dg * (ok / dist)[:, :, None], np.where(ok, dist, 0.0) - (bar / 2 + drone_radius + margin), on[:, None] & ok
 
 
 _UP = np.array([0.0, 0.0, 1.0])

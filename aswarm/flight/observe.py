@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aswarm.obs_layout import CYL_FIELDS, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+from aswarm.obs_layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
 
 
 def others(n: int) -> np.ndarray:
@@ -53,8 +53,17 @@ def observe(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, ang_vel: np.ndar
         return a[rows, i].reshape(pos.shape)
 
     nrm = (normals if normals.shape == full else np.broadcast_to(normals, full)).reshape(-1, K, 3)
-    own = np.concatenate([pos - pick(wp, k), pick(nrm, k), pos - pick(wp, k_next), pos[..., 2:3],
-                          quat, vel, ang_vel], -1)
+    normal = pick(nrm, k)
+    # The gate passed last (tracks only: a goal has no direction of passage).
+    t_flat = np.asarray(target).reshape(-1)
+    has_prev = ((t_flat >= 1) & (np.abs(nrm[rows, 0]).sum(-1) > 0)).reshape(pos.shape[:-1] + (1,))
+    k_prev = np.maximum(t_flat - 1, 0)
+    prev_rel = np.where(has_prev, pos - pick(wp, k_prev), 0.0)
+    prev_normal = np.where(has_prev, pick(nrm, k_prev), 0.0)
+    to_target = pick(wp, k) - pos
+    direction = to_target / np.maximum(np.linalg.norm(to_target, axis=-1, keepdims=True), MIN_TARGET_DIST)
+    own = np.concatenate([-to_target, normal, pos - pick(wp, k_next), direction, prev_rel, prev_normal,
+                          pos[..., 2:3], quat, vel, ang_vel], -1)
 
     rel = cyl_pos[..., None, :, :] - pos[..., :, None, :2]  # [..., n, M, 2]
     gap = np.linalg.norm(rel, axis=-1) - cyl_radius[..., None, :] - collision_radius
