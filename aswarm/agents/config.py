@@ -30,6 +30,7 @@ class TrainConfig:
     # Table II, but for the actor's rate: at 5e-4 the KL per update stayed ~1e-3 (2e-3 learnt faster).
     actor_lr: float = 2e-3
     critic_lr: float = 5e-3
+    anneal_lr: bool = True  # every rate falls linearly to 0 over total_steps (optax.linear_schedule)
     cbf_lr: float = 1e-3
     clip: float = 0.1
     gae_lambda: float = 0.95

@@ -140,9 +140,14 @@ def make_optimizer(config: TrainConfig, h: dict | None = None) -> optax.Gradient
     """``h`` (from ``hparams.resolve``) may hold traced rates: Adam's state does not store them, so the
     optimizer state has the same layout either way."""
     h = h or hparams.resolve(config, {})
+    # One count per minibatch step; the rates fall linearly to 0 over the run when annealed. At a constant
+    # actor LR of 2e-3 the race policy reached 100 % and then collapsed (entropy and return falling
+    # from update ~400 of 610, README).
+    steps = config.num_updates * config.num_epochs * config.num_minibatches
 
     def adam(lr):
-        return optax.chain(optax.clip_by_global_norm(h["max_grad_norm"]), optax.adam(lr))
+        rate = optax.linear_schedule(lr, 0.0, steps) if config.anneal_lr else lr
+        return optax.chain(optax.clip_by_global_norm(h["max_grad_norm"]), optax.adam(rate))
 
     labels = {"actor": "actor", "critic": "critic", "cost_critic": "critic", "cbf": "cbf", "lagrange": "cbf"}
     return optax.multi_transform(

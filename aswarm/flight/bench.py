@@ -47,7 +47,7 @@ def synthetic_bundle(num_agents: int = 4, num_cylinders: int = 8, num_gates: int
     arrays |= dense("cbf/MLP_0/Dense_2", 64, 2)
     yaw = np.arange(num_gates) * 2 * np.pi / num_gates + np.pi / 2
     gates = [[6.0 * np.cos(a - np.pi / 2), 4.0 * np.sin(a - np.pi / 2), 1.0, float(a)] for a in yaw]
-    env = dict(num_agents=num_agents, num_cylinders=num_cylinders, num_gates=num_gates, max_speed=2.0, policy_freq=50,
+    env = dict(num_agents=num_agents, num_cylinders=num_cylinders, num_gates=num_gates, max_speed=2.0, policy_freq=25,
                collision_radius=0.06, arena_low=[-8.0, -6.0, 0.0], arena_high=[8.0, 6.0, 3.0], gate_half_opening=0.3,
                gate_bar=0.05, goal_radius=0.2, episode_seconds=40.0, safety_margin=0.15)
     safety = dict(method="attention_cbf", enabled=True, gain_source="attention", fixed_gain=1.5, gain_min=0.3,
