@@ -1,6 +1,6 @@
 """Moving-obstacle study: success and collisions of a trained policy and the MPC against 1, 2 and 3 moving cylinders.
 
-    python experiments/moving_obstacles.py --checkpoint runs/race-v4            # 1000 episodes per point
+    python experiments/moving_obstacles.py --checkpoint pretrained --checkpoint runs/race-moving
     python experiments/moving_obstacles.py --checkpoint pretrained --episodes 64 --mpc-episodes 32
 
 The paper reports 100 % success with one moving obstacle and 95 % with three. Here the race track keeps its
@@ -41,7 +41,8 @@ def table(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", default="pretrained", help="a race run folder or 'pretrained'")
+    p.add_argument("--checkpoint", action="append", default=None,
+                   help="a race run folder or 'pretrained' (repeat for several; default: pretrained)")
     p.add_argument("--moving", default="0,1,2,3", help="comma-separated numbers of moving cylinders (<= 8)")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--mpc-episodes", type=int, default=200, help="0 skips the MPC")
@@ -65,12 +66,12 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     t_start = time.perf_counter()
     for k in counts:
-        t0 = time.perf_counter()
-        r = evaluate.evaluate_checkpoint(args.checkpoint, "race", args.episodes, args.seed,
-                                         [f"{f}={v}" for f, v in overrides(k).items()])
-        rows.append({**r, "label": f"{r['method']} ({args.checkpoint})", "moving": k,
-                     "wall_s": time.perf_counter() - t0})
-        print(f"policy, {k} moving: success {_pct(r, 'success')}, collision {_pct(r, 'collision')}", flush=True)
+        for ckpt in args.checkpoint or ["pretrained"]:
+            t0 = time.perf_counter()
+            r = evaluate.evaluate_checkpoint(ckpt, "race", args.episodes, args.seed,
+                                             [f"{f}={v}" for f, v in overrides(k).items()])
+            rows.append({**r, "label": f"{r['method']} ({ckpt})", "moving": k, "wall_s": time.perf_counter() - t0})
+            print(f"{ckpt}, {k} moving: success {_pct(r, 'success')}, collision {_pct(r, 'collision')}", flush=True)
         if args.mpc_episodes:
             t0 = time.perf_counter()
             env = envs.make("race", **overrides(k))

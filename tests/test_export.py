@@ -87,10 +87,10 @@ def test_manifest_describes_the_policy(run_dir, exported):
     assert m["observation"]["fields"] == env.obs_layout.describe()  # the simulator's layout, field by field
     assert m["observation"]["size"] == env.observation_size
     e = m["env"]
-    assert (e["num_agents"], e["num_cylinders"], e["num_gates"], e["policy_freq"]) == (3, 8, 4, 50)
+    assert (e["num_agents"], e["num_cylinders"], e["num_gates"], e["policy_freq"]) == (3, 8, 4, env.config.policy_freq)
     assert e["collision_radius"] == env.config.cf.collision_radius and e["arena_high"] == [8.0, 6.0, 3.0]
     assert m["action"]["unit"] == "m/s" and m["action"]["frame"] == "world" and m["action"]["high"] == 2.0
-    assert m["control"]["rate_hz"] == 50
+    assert m["control"]["rate_hz"] == env.config.policy_freq
     sf = m["safety_filter"]
     assert sf["enabled"] and sf["gain_source"] == "attention" and sf["margin"] == 0.1 and sf["rho"] == 1e6
     assert (sf["gate_half_opening"], sf["gate_bar"], sf["drone_radius"]) == (0.3, 0.05, 0.06)

@@ -81,7 +81,10 @@ def test_tiny_sweep_resumes_and_equals_trials_run_one_by_one(tmp_path):
             rows = sweep.read_rows(run)
             assert [r["update"] for r in rows] == [1, 2, 3, 4]
             for name, values in metrics.items():
-                np.testing.assert_allclose([r[name] for r in rows], np.asarray(values), rtol=1e-5, atol=1e-5,
+                # Explained variance, 1 - var(residual) / var(target), magnifies float noise where the
+                # target barely varies (seen: -6.222268 vs -6.222369, 1.6e-5 relative).
+                rtol = 1e-4 if name == "train/explained_variance" else 1e-5
+                np.testing.assert_allclose([r[name] for r in rows], np.asarray(values), rtol=rtol, atol=1e-5,
                                            err_msg=f"{run.name} {name}")
             # What `aswarm eval --checkpoint` reads: the trial's own config and policy.
             trained, restored = evaluate.load(run)
