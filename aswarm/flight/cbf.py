@@ -15,7 +15,9 @@ float64. Every function takes leading batch axes ``...`` (worlds, drones).
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -216,125 +218,283 @@ def _active_set(G: np.ndarray, h: np.ndarray, valid: np.ndarray, x0: np.ndarray,
     return x, pending
 
 
-# Below this many problems the steps run in Python floats, one problem at a time: each array
-# operation costs about a microsecond whatever its size, and one step over a batch takes ~60 of them,
-# while a problem's own step (a Gram matrix of at most 4 x 4) takes ~15 us in plain Python.
+# Up to this many problems the steps run in Python floats (_active_set_scalar): each array operation
+# costs about a microsecond whatever its size, and one step over a batch takes ~60 of them, while a
+# problem's own step (a Gram matrix of at most 4 x 4) takes a few microseconds in plain Python.
 SCALAR_MAX_PROBLEMS = 8
 
 
-def _chol_solve(a: list, b: list) -> list:
-    """y with a y = b for a small symmetric positive definite ``a`` (lists of floats)."""
-    k = len(b)
-    L = [[0.0] * k for _ in range(k)]
-    for i in range(k):
-        for j in range(i + 1):
-            v = a[i][j] - sum(L[i][q] * L[j][q] for q in range(j))
-            L[i][j] = math.sqrt(v) if i == j else v / L[j][j]
-    y = [0.0] * k
-    for i in range(k):
-        y[i] = (b[i] - sum(L[i][q] * y[q] for q in range(i))) / L[i][i]
-    for i in reversed(range(k)):
-        y[i] = (y[i] - sum(L[q][i] * y[q] for q in range(i + 1, k))) / L[i][i]
+def _dot(a: list, b: list) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+def _sum_sq(v: list) -> float:
+    acc = 0.0
+    for e in v:
+        acc += e * e
+    return acc
+
+
+def _cholesky_row(L: list, a: list) -> list:
+    """The next row of the Cholesky factor ``L`` (its rows so far) of a Gram matrix whose new last row is ``a``."""
+    new = []
+    for j, row in enumerate(L):
+        acc = 0.0
+        for q in range(j):
+            acc += new[q] * row[q]
+        new.append((a[j] - acc) / row[j])
+    new.append(math.sqrt(a[len(L)] - _sum_sq(new)))
+    return new
+
+
+def _cholesky(normals: list) -> list:
+    """Cholesky factor (rows, lists of floats) of the Gram matrix of a few 4-vectors."""
+    L: list = []
+    for i, a in enumerate(normals):
+        L.append(_cholesky_row(L, [_dot(a, c) for c in normals[:i + 1]]))
+    return L
+
+
+# The sums below are accumulated term by term in a fixed order (as sum() would): plain loops, as
+# these run a few times per step of a 4-variable problem, where generators cost more than the sums.
+def _forward(L: list, b: list) -> list:
+    """y with L y = b."""
+    y: list = []
+    for i, row in enumerate(L):
+        acc = 0.0
+        for q in range(i):
+            acc += row[q] * y[q]
+        y.append((b[i] - acc) / row[i])
     return y
 
 
-def _active_set_one(G: np.ndarray, h: np.ndarray, valid: np.ndarray, x0: np.ndarray, max_iter: int, tol: float):
-    """:func:`_active_set` for one problem (G [C, 4], h [C]) in Python floats: the same steps, slot by slot."""
-    Gl = G.tolist()
-    free = valid.copy()
-    x = x0.tolist()
-    slots: list = [None] * _SLOTS  # (row, normal, multiplier) of the active rows
-    pending, p, lam_p = False, 0, 0.0
-    for _ in range(max_iter):
-        gaps = G @ np.array(x) - h
-        cand = np.where(free, gaps, np.inf)
-        first = int(cand.argmin())
-        if not pending:
-            if not cand[first] < -tol:
-                break
-            p, lam_p, pending = first, 0.0, True
-        g = Gl[p]
-        act = [i for i in range(_SLOTS) if slots[i] is not None]
-        normals = [slots[i][1] for i in act]
-        if act:
-            gram = [[sum(u * v for u, v in zip(a, c)) for c in normals] for a in normals]
-            r = _chol_solve(gram, [sum(u * v for u, v in zip(a, g)) for a in normals])
-            z = [g[d] - sum(ri * nrm[d] for ri, nrm in zip(r, normals)) for d in range(4)]
+def _backward(L: list, y: list) -> list:
+    """r with Lᵀ r = y."""
+    k = len(y)
+    r = list(y)
+    for i in range(k - 1, -1, -1):
+        acc = 0.0
+        for q in range(i + 1, k):
+            acc += L[q][i] * r[q]
+        r[i] = (r[i] - acc) / L[i][i]
+    return r
+
+
+def _combination(c: list, v: list) -> tuple:
+    """Σ c_i v_i of 4-vectors v_i (at least one)."""
+    a, u = c[0], v[0]
+    s0, s1, s2, s3 = a * u[0], a * u[1], a * u[2], a * u[3]
+    for i in range(1, len(c)):
+        a, u = c[i], v[i]
+        s0 += a * u[0]
+        s1 += a * u[1]
+        s2 += a * u[2]
+        s3 += a * u[3]
+    return s0, s1, s2, s3
+
+
+class _Steps:
+    """One problem's state in :func:`_active_set_scalar`: the iterate and the active rows, in Python floats.
+
+    The active rows are kept in slot order (slot ids ascending) as parallel lists: slot id, row,
+    normal, multiplier. ``L`` is the Cholesky factor of their normals' Gram matrix, kept between
+    steps (a row added after the others extends it, one dropped last shortens it, else it is
+    refactorised), which is the factor a fresh factorisation gives, to the bit, for less work.
+    """
+
+    __slots__ = ("x", "slot", "row", "nrm", "lam", "L", "pending", "p", "lam_p")
+
+    def __init__(self, x: list):
+        self.x = x
+        self.slot: list = []
+        self.row: list = []
+        self.nrm: list = []
+        self.lam: list = []
+        self.L: list = []
+        self.pending, self.p, self.lam_p = False, 0, 0.0
+
+    def step(self, g: list, gap: float, h_free: np.ndarray, h: np.ndarray) -> bool:
+        """One step towards adding row ``p`` (normal g, gap G x − h there); False when no step is possible.
+
+        Marks an added row as not free (``h_free`` -inf) and a dropped one as free again.
+        """
+        nrm, lam, L = self.nrm, self.lam, self.L
+        if len(nrm) == 1:  # the usual second row: the general branch below, written out
+            n0, l00 = nrm[0], L[0][0]
+            y = [_dot(n0, g) / l00]
+            r = [y[0] / l00]
+            z = [g[0] - r[0] * n0[0], g[1] - r[0] * n0[1], g[2] - r[0] * n0[2], g[3] - r[0] * n0[3]]
+        elif nrm:
+            y = _forward(L, [_dot(n, g) for n in nrm])  # also the new row of L if g is added
+            r = _backward(L, y)  # g's coordinates on the active normals
+            s0, s1, s2, s3 = _combination(r, nrm)
+            z = [g[0] - s0, g[1] - s1, g[2] - s2, g[3] - s3]  # g less its active part
         else:
-            r, z = [], list(g)
-        zz = sum(v * v for v in z)
-        z_zero = len(act) == _SLOTS or zz < 1e-12 * sum(v * v for v in g)
-        t_full = math.inf if z_zero else -float(gaps[p]) / zz
+            y, r, z = [], [], g
+        gg = _dot(g, g)
+        zz = _dot(z, z) if nrm else gg
+        z_zero = len(nrm) == _SLOTS or zz < 1e-12 * gg
+        t_full = math.inf if z_zero else -gap / zz
         t_part, k = math.inf, -1
-        for j, i in enumerate(act):
-            if r[j] > 0 and slots[i][2] / r[j] < t_part:
-                t_part, k = slots[i][2] / r[j], i
+        for j, rj in enumerate(r):
+            if rj > 0 and lam[j] / rj < t_part:
+                t_part, k = lam[j] / rj, j
         t = min(t_full, t_part)
         if t == math.inf:  # infeasible (impossible with the slack): stop, as the JAX loop idles
-            pending = False
-            break
+            self.pending = False
+            return False
         if not z_zero:
-            x = [xd + t * zd for xd, zd in zip(x, z)]
-        lam_p += t
-        for j, i in enumerate(act):
-            row, nrm, lam = slots[i]
-            slots[i] = (row, nrm, max(lam - t * r[j], 0.0))
-        if t_full <= t_part:
-            slots[slots.index(None)] = (p, g, lam_p)
-            free[p] = False
-            pending = False
-        else:
-            free[slots[k][0]] = True
-            slots[k] = None
-    act = [sl for sl in slots if sl is not None]
-    if act and not pending:  # the final Newton step onto the active set (see _active_set)
-        normals = [sl[1] for sl in act]
-        gram = [[sum(u * v for u, v in zip(a, c)) for c in normals] for a in normals]
-        y = _chol_solve(gram, [float(h[sl[0]]) - sum(u * v for u, v in zip(sl[1], x)) for sl in act])
-        x = [x[d] + sum(yi * nrm[d] for yi, nrm in zip(y, normals)) for d in range(4)]
-    return np.array(x), pending
+            self.x = [xd + t * zd for xd, zd in zip(self.x, z)]
+        self.lam_p += t
+        for j, rj in enumerate(r):
+            lam[j] = max(lam[j] - t * rj, 0.0)
+        if t_full <= t_part:  # add p in the first free slot
+            s = 0
+            while s in self.slot:
+                s += 1
+            j = bisect.bisect(self.slot, s)
+            self.slot.insert(j, s)
+            self.row.insert(j, self.p)
+            nrm.insert(j, g)
+            lam.insert(j, self.lam_p)
+            h_free[self.p] = -np.inf
+            self.pending = False
+            if j == len(L):
+                L.append(y + [math.sqrt(gg - _sum_sq(y))])
+            else:
+                self.L = _cholesky(nrm)
+        else:  # drop the active row whose multiplier reached zero first
+            h_free[self.row[k]] = h[self.row[k]]
+            del self.slot[k], self.row[k], nrm[k], lam[k]
+            if k == len(L) - 1:
+                L.pop()
+            else:
+                self.L = _cholesky(nrm)
+        return True
+
+    def finish(self, h: np.ndarray) -> list:
+        """The final Newton step onto the active set (see :func:`_active_set`); the iterate as 4 floats."""
+        x, nrm = self.x, self.nrm
+        if len(nrm) == 1 and not self.pending:  # the general branch below, written out
+            n0, l00 = nrm[0], self.L[0][0]
+            y0 = (float(h[self.row[0]]) - _dot(n0, x)) / l00 / l00
+            return [x[0] + y0 * n0[0], x[1] + y0 * n0[1], x[2] + y0 * n0[2], x[3] + y0 * n0[3]]
+        if nrm and not self.pending:
+            y = _backward(self.L, _forward(self.L, [float(h[i]) - _dot(n, x) for i, n in zip(self.row, nrm)]))
+            s0, s1, s2, s3 = _combination(y, nrm)
+            x = [x[0] + s0, x[1] + s1, x[2] + s2, x[3] + s3]
+        return x
 
 
-def _solve(u_nom: np.ndarray, a_hat: np.ndarray, b_hat: np.ndarray, valid_rows: np.ndarray, u_max: np.ndarray,
-           rho: float, max_iter: int, tol: float) -> FilterResult:
-    """The QP on unit rows: u_nom [P, 3], a_hat [P, m, 3], b_hat [P, m], valid_rows [P, m], u_max [3]."""
-    P, m = b_hat.shape
-    # Which commands already satisfy everything (the common case in flight: nothing else to do).
-    row_gap = (a_hat @ u_nom[:, :, None])[:, :, 0] - b_hat
-    safe = ~((valid_rows & (row_gap < -tol)).any(1) | (np.abs(u_nom) - u_max > tol).any(1))
+def _active_set_scalar(G: np.ndarray, h: np.ndarray, valid: np.ndarray, x0: np.ndarray, gaps0: np.ndarray,
+                       max_iter: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_active_set` for a few problems, each step of each in Python floats: the same steps, slot by slot.
+
+    G [Q, C, 4]; h, valid [Q, C]; x0 [Q, 4]; gaps0 = G x0 − h (the caller has it). Per step numpy
+    only finds the most violated free row of every problem (one batched product and an argmin);
+    the step itself is a handful of floats per problem.
+    """
+    # h on the rows that may still be added, -inf on the others (invalid or active): G x − h_free
+    # is then +inf there and the argmin finds the most violated free row.
+    h_free = np.where(valid, h, -np.inf)
+    cand = np.where(valid, gaps0, np.inf)
+    probs = [_Steps(x) for x in x0.tolist()]
+    work = range(len(probs))
+    for it in range(max_iter):
+        if it:
+            cand = (G @ np.array([pr.x for pr in probs])[:, :, None])[:, :, 0]
+            cand -= h_free
+        first = cand.argmin(1).tolist()
+        going = []
+        for i in work:
+            pr = probs[i]
+            if not pr.pending:
+                if not cand.item(i, first[i]) < -tol:
+                    continue  # solved: no violated row left
+                pr.p, pr.lam_p, pr.pending = first[i], 0.0, True
+            if pr.step(G[i, pr.p].tolist(), cand.item(i, pr.p), h_free[i], h[i]):
+                going.append(i)
+        work = going
+        if not work:
+            break
+    return np.array([pr.finish(h[i]) for i, pr in enumerate(probs)]), np.array([pr.pending for pr in probs])
+
+
+def _qp_rows(P: int, m: int, u_max: tuple, rho: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``G x ≥ h`` of P problems in x = (u, √ρ s), with the box filled in and m hazard rows to fill.
+
+    G [P, m + 6, 4], h and valid [P, m + 6]: a caller writes the unit normals into ``G[:, :m, :3]``
+    (the slack column is set), the offsets into ``h[:, :m]`` and the presence into ``valid[:, :m]``.
+    The box is the last 6 rows, u_k ≥ −u_max and −u_k ≥ −u_max (u_max: 3 floats).
+    """
+    # The filter runs on the same shapes every step: a copy of arrays built once is cheaper than
+    # filling them (large batches, which are cheap to fill by comparison, are not kept).
+    G, h, valid = _qp_template(P, m, u_max, rho) if P <= 1024 else _qp_template.__wrapped__(P, m, u_max, rho)
+    return G.copy(), h.copy(), valid.copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _qp_template(P: int, m: int, u_max: tuple, rho: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`_qp_rows` copies."""
+    G = np.zeros((P, m + 6, 4))
+    G[:, :m, 3] = 1.0 / np.sqrt(rho)
+    G[:, m:] = _BOX
+    h = np.zeros((P, m + 6))
+    h[:, m:] = -np.array(u_max + u_max)
+    valid = np.zeros((P, m + 6), bool)
+    valid[:, m:] = True
+    for a in (G, h, valid):
+        a.setflags(write=False)
+    return G, h, valid
+
+
+def _solve(u_nom: np.ndarray, G: np.ndarray, h: np.ndarray, valid: np.ndarray, u_max: tuple, rho: float,
+           max_iter: int, tol: float) -> FilterResult:
+    """The QP of :func:`_qp_rows`: u_nom [P, 3]; G [P, C, 4]; h, valid [P, C]; u_max 3 floats."""
+    P = u_nom.shape[0]
+    x0 = np.zeros((P, 4))
+    x0[:, :3] = u_nom
+    # Which commands already satisfy every row and the box (the common case in flight: nothing
+    # else to do). As in the JAX filter, on the same rows the solver then works on.
+    gaps = (G @ x0[:, :, None])[:, :, 0]
+    gaps -= h
+    unsafe = (valid & (gaps < -tol)).any(1)
+    if not unsafe.any():
+        return FilterResult(u=u_nom.copy(), slack=np.zeros(P), intervened=unsafe, correction_norm=np.zeros(P),
+                            converged=~unsafe)
+    bad = unsafe.nonzero()[0]
+    some = bad.size < P  # else every problem is solved: no gathering and scattering
+    if some:
+        G, h, valid, x0, gaps = G[bad], h[bad], valid[bad], x0[bad], gaps[bad]
+    if bad.size <= SCALAR_MAX_PROBLEMS:
+        x, pending = _active_set_scalar(G, h, valid, x0, gaps, max_iter, tol)
+    else:
+        x, pending = _active_set(G, h, valid, x0, max_iter, tol)
+    # Out of budget: the dual iterate can leave the box; clipping keeps the command flyable.
+    lim = u_max[0] if u_max[0] == u_max[1] == u_max[2] else np.array(u_max)
+    u_bad = np.minimum(np.maximum(x[:, :3], -lim), lim)
+    slack_bad = np.maximum(x[:, 3] / math.sqrt(rho), 0.0)
+    gaps = (G @ x[:, :, None])[:, :, 0]
+    gaps -= h
+    converged_bad = ~(pending | (valid & (gaps < -10 * tol)).any(1))
+    diff = u_bad - x0[:, :3]
+    corr_bad = np.sqrt((diff * diff).sum(-1))
+    if not some:
+        return FilterResult(u=u_bad, slack=slack_bad, intervened=unsafe, correction_norm=corr_bad,
+                            converged=converged_bad)
     u = u_nom.copy()
+    u[bad] = u_bad
     slack = np.zeros(P)
-    converged = np.ones(P, bool)
-    bad = np.flatnonzero(~safe)
-    if bad.size:
-        # x = (u, √ρ s): rows [â, 1/√ρ] ≥ b̂, then the box as u_k ≥ −u_max and −u_k ≥ −u_max.
-        Q = bad.size
-        G = np.zeros((Q, m + 6, 4))
-        G[:, :m, :3] = a_hat[bad]
-        G[:, :m, 3] = 1.0 / np.sqrt(rho)
-        G[:, m:, :3] = _BOX
-        h = np.empty((Q, m + 6))
-        h[:, :m] = b_hat[bad]
-        h[:, m:] = -np.concatenate([u_max, u_max])
-        valid = np.ones((Q, m + 6), bool)
-        valid[:, :m] = valid_rows[bad]
-        x0 = np.zeros((Q, 4))
-        x0[:, :3] = u_nom[bad]
-        if Q <= SCALAR_MAX_PROBLEMS:
-            out = [_active_set_one(G[i], h[i], valid[i], x0[i], max_iter, tol) for i in range(Q)]
-            x, pending = np.stack([o[0] for o in out]), np.array([o[1] for o in out])
-        else:
-            x, pending = _active_set(G, h, valid, x0, max_iter, tol)
-        # Out of budget: the dual iterate can leave the box; clipping keeps the command flyable.
-        u[bad] = np.clip(x[:, :3], -u_max, u_max)
-        slack[bad] = np.maximum(x[:, 3] / np.sqrt(rho), 0.0)
-        gaps = (G @ x[:, :, None])[:, :, 0] - h
-        converged[bad] = ~pending & ~(valid & (gaps < -10 * tol)).any(1)
-    corr = np.sqrt(((u - u_nom) ** 2).sum(-1))
-    return FilterResult(u=u, slack=slack, intervened=~safe, correction_norm=corr, converged=converged)
+    slack[bad] = slack_bad
+    converged = ~unsafe
+    converged[bad] = converged_bad
+    corr = np.zeros(P)
+    corr[bad] = corr_bad
+    return FilterResult(u=u, slack=slack, intervened=unsafe, correction_norm=corr, converged=converged)
 
 
 _BOX = np.concatenate([np.eye(3), -np.eye(3)])
+_BOX = np.concatenate([_BOX, np.zeros((6, 1))], 1)  # the box rows of G (no slack)
 
 
 def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.ndarray, u_max, *, rho: float = 1e6,
@@ -347,13 +507,15 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
     """
     u_nom = np.asarray(u_nom, np.float64)
     lead, m = u_nom.shape[:-1], A.shape[-2]
-    P = int(np.prod(lead, dtype=np.int64))
+    P = math.prod(lead)
     nrm, a_hat = _unit(np.asarray(A, np.float64).reshape(P, m, 3))
     valid_rows = np.asarray(mask, bool).reshape(P, m) & (nrm > _EPS)
-    b_hat = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
-    res = _solve(u_nom.reshape(P, 3), a_hat, b_hat, valid_rows, np.broadcast_to(np.asarray(u_max, float), (3,)),
-                 rho, max_iter, tol)
-    return _reshape(res, lead)
+    u_max = tuple(np.broadcast_to(np.asarray(u_max, float), (3,)).tolist())
+    G, h, valid = _qp_rows(P, m, u_max, float(rho))
+    G[:, :m, :3] = a_hat
+    h[:, :m] = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
+    valid[:, :m] = valid_rows
+    return _reshape(_solve(u_nom.reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol), lead)
 
 
 def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
@@ -363,7 +525,20 @@ def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
 
 
 # ------------------------------------------------------------------ from observations
-_CORNERS = np.array([(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)])  # (lateral, up) of a gate's corners
+@functools.lru_cache(maxsize=32)
+def _obs_columns(layout: ObsLayout) -> tuple[slice, slice, np.ndarray]:
+    """(altitude, velocity, [2, 6] columns of the current and the previous gate's (rel, normal)) in an own row."""
+    f = layout.own_slices
+    gates = np.array([np.r_[f["target_rel"], f["target_normal"]], np.r_[f["prev_gate_rel"], f["prev_gate_normal"]]])
+    return f["altitude"], f["vel"], gates
+
+
+@functools.lru_cache(maxsize=32)
+def _shares(M: int, K: int, share: float) -> np.ndarray:
+    """The share of a gap each drone closes, per row of filter_from_obs: ``share`` of a neighbour's, else all."""
+    out = np.concatenate([np.ones(M), np.full(K, share), np.ones(11)])
+    out.setflags(write=False)
+    return out
 
 
 def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray, u_max: float,
@@ -376,83 +551,101 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     position with z its altitude; one gain per drone for all its rows; gate rows present when
     ``gate_bar > 0`` and the observation has a gate (non-zero direction of passage). The rows are
     those of :func:`barrier_constraints` and :func:`gate_constraints`, built here directly as unit
-    rows from the relative positions in the observation (fewer array operations for the same
-    numbers: this runs every control step).
+    rows from the relative positions in the observation and written straight into the QP's arrays.
+
+    Every row is the same computation on different inputs: an offset d from the hazard to the
+    drone (its unit normal n = d / ||d||), a velocity of reference v, the share s of the gap this
+    drone closes and a barrier value h, giving n · u ≥ n · v − s γ h. So all rows are built in one
+    pass over arrays of all rows (numpy's cost is per operation, not per number, at these sizes):
+    a cylinder or neighbour is a point hazard, a gate bar's offset is to its closest point, and the
+    floor is the row with d = (0, 0, 1), v = 0 and h = altitude − clearance.
     """
     lead = obs.shape[:-1]
-    P = int(np.prod(lead, dtype=np.int64))
+    P = math.prod(lead)
     M, K = layout.num_cylinders, layout.num_neighbours
+    H = M + K  # point hazards
+    m = H + 11  # rows [cylinders M | neighbours K | floor 1 | gate 5 | previous gate 5], then the box
     obs = np.asarray(obs, np.float64).reshape(P, -1)
     own, cyl, nbr = layout.split(obs)
-    f = layout.own_slices
-    alt = own[:, f["altitude"]][:, 0]
-    vel = own[:, f["vel"]]
+    alt_col, vel_col, gate_cols = _obs_columns(layout)
+    alt = own[:, alt_col]  # [P, 1]
     gamma = np.asarray(gain, np.float64).reshape(P, 1)
+    u_max = (float(u_max),) * 3
+    G, h, valid = _qp_rows(P, m, u_max, float(rho))
 
-    # Cylinders and neighbours: the hazard's offset to the drone (the drone sits at (0, 0, alt)),
-    # its velocity of reference and the share of the gap this drone closes (see the JAX module).
-    d = np.zeros((P, M + K, 3))
-    d[:, :M, :2] = -cyl[:, :, 0:2]
-    d[:, M:] = -nbr[:, :, 0:3]
-    ref = np.zeros((P, M + K, 3))
+    d = np.zeros((P, m, 3))
+    np.negative(cyl[:, :, 0:2], out=d[:, :M, :2])  # the drone sits at (0, 0, alt)
+    np.negative(nbr[:, :, 0:3], out=d[:, M:H])
+    d[:, H, 2] = 1.0
+    # The current gate's frame and the one passed last: 4 edges and the post each, as round bars.
+    gates = own[:, gate_cols]  # [P, 2, 6]
+    valid[:, H + 1:m] = _gate_offsets(gates[:, :, :3], gates[:, :, 3:], alt[:, 0], gate_half_opening, gate_bar,
+                                      d[:, H + 1:m].reshape(P, 2, 5, 3)).repeat(5, 1)
+    ref = np.zeros((P, m, 3))
     ref[:, :M, :2] = cyl[:, :, 3:5]
-    ref[:, M:] = vel[:, None, :] + neighbour_share * nbr[:, :, 3:6]
+    ref[:, M:H] = own[:, None, vel_col] + neighbour_share * nbr[:, :, 3:6]
+
     sq = (d * d).sum(-1)
     ok = sq > _EPS**2
     dist = np.sqrt(np.where(ok, sq, 1.0))
-    n_pt = d * (ok / dist)[:, :, None]
-    h_pt = np.empty((P, M + K))
-    # h = ||p_xy − c|| − (R + r + margin) with R = ||rel|| − clearance − r: the clearance less the margin.
-    h_pt[:, :M] = cyl[:, :, 2] - margin
-    h_pt[:, M:] = dist[:, M:] - (2.0 * drone_radius + margin)
-    share = np.concatenate([np.ones(M), np.full(K, neighbour_share)])
-    b_pt = (n_pt * ref).sum(-1) - share * gamma * h_pt
-    present = np.concatenate([cyl[:, :, 5], nbr[:, :, 6]], 1) > 0.5
+    n = np.multiply(d, (ok / dist)[:, :, None], out=G[:, :m, :3])
+    hv = np.empty((P, m))
+    # A cylinder's h = ||p_xy − c|| − (R + r + margin) with R = ||rel|| − clearance − r: the clearance less the margin.
+    np.subtract(cyl[:, :, 2], margin, out=hv[:, :M])
+    np.subtract(dist[:, M:H], 2.0 * drone_radius + margin, out=hv[:, M:H])
+    np.subtract(alt, floor_z + drone_radius + margin, out=hv[:, H:H + 1])
+    np.subtract(dist[:, H + 1:], gate_bar / 2 + drone_radius + margin, out=hv[:, H + 1:])
+    sgh = _shares(M, K, neighbour_share) * gamma
+    sgh *= hv
+    np.subtract((n * ref).sum(-1), sgh, out=h[:, :m])
+    np.greater(cyl[:, :, 5], 0.5, out=valid[:, :M])
+    np.greater(nbr[:, :, 6], 0.5, out=valid[:, M:H])
+    valid[:, H] = True
+    valid[:, :m] &= ok  # a row with no direction is ignored
 
-    # The current gate's frame and the one passed last: 4 edges and the post each, as round bars.
-    n_cur, h_cur, on_cur = _gate_rows(own[:, f["target_rel"]], own[:, f["target_normal"]], alt,
-                                      gate_half_opening, gate_bar, drone_radius, margin)
-    n_prev, h_prev, on_prev = _gate_rows(own[:, f["prev_gate_rel"]], own[:, f["prev_gate_normal"]], alt,
-                                         gate_half_opening, gate_bar, drone_radius, margin)
-
-    # Rows [cylinders M | neighbours K | floor 1 | gate 5 | previous gate 5]; a row with no direction is ignored.
-    a_hat = np.concatenate([n_pt, np.broadcast_to(_UP, (P, 1, 3)), n_cur, n_prev], 1)
-    b_hat = np.concatenate([b_pt, gamma * (floor_z + drone_radius + margin - alt[:, None]), -gamma * h_cur,
-                            -gamma * h_prev], 1)
-    valid = np.concatenate([present & ok, np.ones((P, 1), bool), on_cur, on_prev], 1)
-    res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), a_hat, b_hat, valid, np.full(3, float(u_max)), rho,
-                 max_iter, tol)
+    res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol)
     return _reshape(res, lead)
 
 
-def _gate_rows(rel: np.ndarray, normal: np.ndarray, alt: np.ndarray, half_opening: float, bar: float,
-               drone_radius: float, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit rows [P, 5, 3], barrier values [P, 5] and validity [P, 5] of one gate's 5 bars.
+@functools.lru_cache(maxsize=32)
+def _bar_ends(c: float) -> np.ndarray:
+    """[10, 3]: where a gate's bars start (5 rows) and end (5 rows), as (lateral, lateral, up) offsets from its centre.
 
-    rel [P, 3] drone minus gate centre and normal [P, 3] as observed; the drone sits at (0, 0, alt).
+    In units of (lat_x, lat_y, 1) with lat the gate's horizontal lateral direction: the 4 edges run
+    from corner to corner ((∓c, ±c) lateral and up), the post from the frame's bottom down to the floor
+    (its foot, the last row, is set to the floor by :func:`_gate_offsets`).
     """
-    P = rel.shape[0]
+    corners = [(-c, -c), (c, -c), (c, c), (-c, c)]  # (lateral, up)
+    starts = corners + [(0.0, -c)]
+    ends = corners[1:] + corners[:1] + [(0.0, 0.0)]
+    out = np.array([(lat, lat, up) for lat, up in starts + ends])
+    out.setflags(write=False)
+    return out
+
+
+def _gate_offsets(rel: np.ndarray, normal: np.ndarray, alt: np.ndarray, half_opening: float, bar: float,
+                  out: np.ndarray) -> np.ndarray:
+    """Offsets [P, g, 5, 3] (into ``out``) to the drone from the closest points of g gates' 5 bars each.
+
+    rel [P, g, 3] drone minus gate centre and normal [P, g, 3] as observed; the drone sits at (0, 0, alt)
+    (alt [P]). Returns [P, g] bool: a gate (a direction of passage) and bars (``bar`` > 0). All gates of
+    all drones in one pass: each operation costs the same for 1 or 2 gates.
+    """
+    P, ng = rel.shape[:2]
     center = -rel
-    center[:, 2] += alt
-    yaw = np.arctan2(normal[:, 1], normal[:, 0])
-    c = half_opening + bar / 2
-    lat = np.stack([-np.sin(yaw), np.cos(yaw), np.zeros(P)], -1)
-    corners = center[:, None, :] + c * _CORNERS[None, :, :1] * lat[:, None, :]
-    corners[:, :, 2] += c * _CORNERS[:, 1]
-    a = np.concatenate([corners, center[:, None, :]], 1)  # segment starts [P, 5, 3]
-    a[:, 4, 2] -= c
-    e = np.concatenate([np.roll(corners, -1, axis=1), center[:, None, :]], 1)  # segment ends
-    e[:, 4, 2] = 0.0
-    pos = np.zeros((P, 1, 3))
-    pos[:, 0, 2] = alt
-    ab = e - a
-    t = np.clip(((pos - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
-    dg = pos - (a + t[:, :, None] * ab)
-    sq = (dg * dg).sum(-1)
-    ok = sq > _EPS**2
-    dist = np.sqrt(np.where(ok, sq, 1.0))
-    on = ((normal * normal).sum(-1) > 0.25) & (bar > 0)
-    return dg * (ok / dist)[:, :, None], np.where(ok, dist, 0.0) - (bar / 2 + drone_radius + margin), on[:, None] & ok
-
-
-_UP = np.array([0.0, 0.0, 1.0])
+    center[:, :, 2] += alt[:, None]
+    yaw = np.arctan2(normal[:, :, 1], normal[:, :, 0])
+    basis = np.empty((P, ng, 1, 3))  # (lat_x, lat_y, 1): lat = (-sin yaw, cos yaw, 0), and up
+    np.sin(yaw, out=basis[:, :, 0, 0])
+    np.negative(basis[:, :, 0, 0], out=basis[:, :, 0, 0])
+    np.cos(yaw, out=basis[:, :, 0, 1])
+    basis[:, :, 0, 2] = 1.0
+    ends = center[:, :, None, :] + _bar_ends(half_opening + bar / 2) * basis  # [P, g, 10, 3]
+    ends[:, :, 9, 2] = 0.0  # the post's foot
+    a, ab = ends[:, :, :5], ends[:, :, 5:] - ends[:, :, :5]  # segment starts, and start to end
+    pos = np.zeros((P, 1, 1, 3))
+    pos[:, 0, 0, 2] = alt
+    t = ((pos - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12)
+    t = np.minimum(np.maximum(t, 0.0), 1.0)  # clip to the segment
+    np.subtract(pos, a + t[..., None] * ab, out=out)
+    return (normal * normal).sum(-1) > 0.25 if bar > 0 else np.zeros((P, ng), bool)

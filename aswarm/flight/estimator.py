@@ -72,8 +72,15 @@ def quat_log(q: np.ndarray) -> np.ndarray:
     angle = 2.0 * np.arctan2(s, np.abs(q[..., 0]))
     # angle / s -> 2 as s -> 0 (small rotation): the limit keeps it finite.
     big = s > 1e-12
-    scale = np.divide(angle, s, out=np.full(s.shape, 2.0), where=big)
+    scale = np.divide(angle, s, out=_filled(s.shape, 2.0), where=big)
     return v * scale[..., None]
+
+
+def _filled(shape: tuple[int, ...], value: float) -> np.ndarray:
+    """np.full without its Python-level overhead (this runs on a few numbers every control step)."""
+    a = np.empty(shape)
+    a.fill(value)
+    return a
 
 
 def update(state: EstimatorState, t: np.ndarray, pos: np.ndarray, quat: np.ndarray, valid: np.ndarray,
@@ -85,24 +92,35 @@ def update(state: EstimatorState, t: np.ndarray, pos: np.ndarray, quat: np.ndarr
     """
     last_t = state.t[..., -1]
     newer = valid & (t > last_t)
-    dt = np.subtract(t, last_t, out=np.full(t.shape, np.inf), where=newer & (state.count > 0))
-    jump = np.linalg.norm(pos - state.pos[..., -1, :], axis=-1)
-    glitch = newer & (state.count > 0) & (jump > config.max_speed * dt)
+    check = newer & (state.count > 0)  # a newer pose after an earlier one: a jump to check
+    dt = np.subtract(t, last_t, out=_filled(t.shape, np.inf), where=check)
+    step = pos - state.pos[..., -1, :]
+    jump = np.sqrt((step * step).sum(-1))
+    glitch = jump > config.max_speed * dt  # (dt is inf where there is nothing to check)
     accept = newer & ~glitch
-    a3 = accept[..., None, None]
-    t_new = np.where(accept[..., None], np.concatenate([state.t[..., 1:], t[..., None]], -1), state.t)
-    pos_new = np.where(a3, np.concatenate([state.pos[..., 1:, :], pos[..., None, :]], -2), state.pos)
-    quat_new = np.where(a3, np.concatenate([state.quat[..., 1:, :], quat[..., None, :]], -2), state.quat)
-    count = np.where(accept, np.minimum(state.count + 1, config.window), state.count)
+    t_new = np.concatenate([state.t[..., 1:], t[..., None]], -1)
+    pos_new = np.concatenate([state.pos[..., 1:, :], pos[..., None, :]], -2)
+    quat_new = np.concatenate([state.quat[..., 1:, :], quat[..., None, :]], -2)
+    count = np.minimum(state.count + 1, config.window)
+    if not accept.all():  # in flight every drone's pose is usually new: nothing to keep then
+        a3 = accept[..., None, None]
+        t_new = np.where(accept[..., None], t_new, state.t)
+        pos_new = np.where(a3, pos_new, state.pos)
+        quat_new = np.where(a3, quat_new, state.quat)
+        count = np.where(accept, count, state.count)
     return EstimatorState(t=t_new, pos=pos_new, quat=quat_new, count=count), accept, glitch
 
 
-def _slope(t: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted least-squares slope of y [..., W, k] against t [..., W] (weights w [..., W] in {0, 1})."""
-    sw = np.maximum(w.sum(-1, keepdims=True), 1.0)
+def _slope(t: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+    """Weighted least-squares slope of y [..., W, k] against t [..., W] (weights w [..., W] in {0, 1}, None: all 1)."""
     # Times relative to the newest sample (no large offsets); unfilled slots hold -inf and weight 0.
-    tc = np.subtract(t, t[..., -1:], out=np.zeros(t.shape), where=w > 0)
-    dt = (tc - (w * tc).sum(-1, keepdims=True) / sw) * w
+    if w is None:  # full windows, the steady state: the same numbers without the weights
+        tc = t - t[..., -1:]
+        dt = tc - tc.sum(-1, keepdims=True) / t.shape[-1]
+    else:
+        sw = np.maximum(w.sum(-1, keepdims=True), 1.0)
+        tc = np.subtract(t, t[..., -1:], out=np.zeros(t.shape), where=w > 0)
+        dt = (tc - (w * tc).sum(-1, keepdims=True) / sw) * w
     den = (dt * dt).sum(-1, keepdims=True)
     # Σ dt_i (y_i − ȳ) = Σ dt_i y_i since Σ dt_i = 0.
     num = (dt[..., None, :] @ y)[..., 0, :]
@@ -112,7 +130,8 @@ def _slope(t: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
 def estimate(state: EstimatorState, config: EstimatorConfig = EstimatorConfig()) -> tuple[np.ndarray, np.ndarray]:
     """(velocity [..., n, 3] world m/s, angular rate [..., n, 3] body rad/s); zero until 2 poses are in."""
     W = config.window
-    w = (np.arange(W) >= W - state.count[..., None]).astype(np.float64)
+    full = bool(state.count.size) and int(state.count.min()) >= W
+    w = None if full else (np.arange(W) >= W - state.count[..., None]).astype(np.float64)
     q_last = state.quat[..., -1, :]
     rel = state.quat @ (q_last[..., _IDX] * _CONJ_SIGN).swapaxes(-1, -2)  # conj(q_last) ⊗ q_i, [..., W, 4]
     rates = _slope(state.t, np.concatenate([state.pos, quat_log(rel)], -1), w)
