@@ -254,12 +254,16 @@ TRAIN_START, TRAIN_END = "<!-- train-bench:start -->", "<!-- train-bench:end -->
 
 
 def time_trainer(config, updates: int = 3) -> dict:
-    """End-to-end training throughput (rollout + all updates), compile apart."""
+    """End-to-end training throughput (rollout + all updates), compile apart, laid out as ``aswarm train`` does
+    (its worlds over ``config.devices``, 0: every device that divides them)."""
+    from aswarm.agents import sharding
     from aswarm.agents.train import make_train
 
-    _, init, chunk, _ = make_train(config)
-    ts = jax.jit(init)(jax.random.PRNGKey(0))
-    fn = jax.jit(chunk, static_argnums=1)
+    mesh = sharding.training_mesh(config.num_envs, config.devices)
+    _, init, chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))
+    key = jax.random.PRNGKey(0)
+    init_fn, fn = sharding.sharded_fns(init, chunk, jax.eval_shape(init, key), mesh, stacked=False)
+    ts = init_fn(key)
     t0 = time.perf_counter()
     ts, _ = fn(ts, updates)  # compiles; a second call would recompile if the state's types drifted
     jax.block_until_ready(ts)
@@ -269,7 +273,7 @@ def time_trainer(config, updates: int = 3) -> dict:
     jax.block_until_ready(ts)
     run_s = time.perf_counter() - t0
     return {"env_steps_per_s": updates * config.steps_per_update / run_s, "compile_s": compile_s,
-            "s_per_update": run_s / updates}
+            "s_per_update": run_s / updates, "devices": int(mesh.devices.size)}
 
 
 def main_trainer(args) -> int:
@@ -278,19 +282,21 @@ def main_trainer(args) -> int:
 
     variants = [
         ("attention_cbf", "default sizes", {}),
+        ("attention_cbf", "default sizes", {"devices": 1}),  # the peer of the row above: one device
         ("attention_cbf", "paper CBF MLP [1024, 256], embed 3", {"cbf_hidden": (1024, 256), "cbf_embed": 3}),
         ("attention_penalty", "default sizes, no filter", {}),
         ("mappo", "default sizes", {}),
     ]
     lines = ["## Training throughput (`make bench-train`)", "",
              f"Command: `aswarm bench --trainer --scenario {args.scenario}`  ", f"Machine: {machine()}  ",
-             f"Date: {time.strftime('%Y-%m-%d')}  ", "", "| method | networks | envs x steps | epochs x minibatches "
-             "| env-steps/s | s / update | compile s |", "|---|---|---|---|---:|---:|---:|"]
+             f"Date: {time.strftime('%Y-%m-%d')}  ", "", "| method | networks | devices | envs x steps | epochs x "
+             "minibatches | env-steps/s | s / update | compile s |", "|---|---|---:|---|---|---:|---:|---:|"]
     for method, label, over in variants:
         cfg = TrainConfig(scenario=args.scenario, method=method, **over)
         r = time_trainer(cfg)
-        print(f"  {method:18s} {label:38s} {r['env_steps_per_s']:10,.0f} env-steps/s", flush=True)
-        lines.append(f"| {method} | {label} | {cfg.num_envs} x {cfg.rollout_steps} | {cfg.epochs} x "
+        print(f"  {method:18s} {label:38s} {r['devices']} device(s) {r['env_steps_per_s']:10,.0f} env-steps/s",
+              flush=True)
+        lines.append(f"| {method} | {label} | {r['devices']} | {cfg.num_envs} x {cfg.rollout_steps} | {cfg.epochs} x "
                      f"{cfg.minibatches} | {r['env_steps_per_s']:,.0f} | {r['s_per_update']:.2f} | "
                      f"{r['compile_s']:.0f} |")
     write_section(args.out, "\n".join(lines), TRAIN_START, TRAIN_END)

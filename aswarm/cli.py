@@ -122,12 +122,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_fly(args: argparse.Namespace) -> int:
-    from aswarm.flight import fly
-
-    return fly.run(args)
-
-
 def _record_episode(args: argparse.Namespace, need_attention: bool = False):
     """(agent's env, recorded Episode) of episode ``--episode-index`` of ``--seed``, as ``aswarm eval`` draws it."""
     import jax
@@ -240,9 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from aswarm.flight import fly as flight_fly
 
+    # Listed for --help only: main() hands `aswarm fly` to the flight package before this parser is built.
     fl = sub.add_parser("fly", help="stream a bundle's velocity setpoints to Crazyflies (cflib), or --dry-run")
     flight_fly.add_arguments(fl)
-    fl.set_defaults(func=cmd_fly)
 
     def episode_flags(q: argparse.ArgumentParser) -> None:
         q.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
@@ -287,8 +281,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Commands that train: on a CPU they split their worlds over the cores (sharding.use_cpu_cores).
+_TRAINING = ("train", "sweep", "bench")
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["fly"]:
+        # The flight side runs next to real drones and must not import JAX (the full parser below imports
+        # the trainer's config, and with it JAX): hand over to the flight package's own command line.
+        from aswarm.flight import fly
+
+        return fly.main(argv[1:])
     args = build_parser().parse_args(argv)
+    if args.command in _TRAINING:
+        from aswarm.agents import sharding
+
+        sharding.use_cpu_cores()
     try:
         return args.func(args)
     except ValueError as e:  # config, input and checkpoint errors: one line, non-zero exit

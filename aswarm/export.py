@@ -67,6 +67,7 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     fv = inspect.signature(cbf_filter.filter_velocity).parameters
     bc = inspect.signature(cbf_filter.barrier_constraints).parameters
     env_fields = dict(num_agents=ec.num_agents, num_cylinders=ec.num_cylinders, num_gates=ec.num_gates,
+                      max_neighbours=ec.max_neighbours,
                       max_speed=ec.max_speed, policy_freq=ec.policy_freq, collision_radius=ec.cf.collision_radius,
                       arena_low=list(ec.arena_low), arena_high=list(ec.arena_high),
                       gate_half_opening=ec.gate_half_opening, gate_bar=ec.gate_bar, goal_radius=ec.goal_radius,
@@ -90,7 +91,8 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
               "gate_half_opening": ec.gate_half_opening, "gate_bar": ec.gate_bar,
               "floor_z": bc["floor_z"].default, "neighbour_share": bc["neighbour_share"].default,
               "rho": fv["rho"].default, "max_iter": fv["max_iter"].default, "tol": fv["tol"].default,
-              "rows": "cylinders M | neighbours n-1 | floor 1 | gate frame 5 (gate rows where a gate is observed)"}
+              "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | gate frame 5 "
+                      "(gate rows where a gate is observed)"}
     return fb.make_manifest(
         scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
         env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},

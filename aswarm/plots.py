@@ -38,8 +38,9 @@ class Episode:
     target: np.ndarray  # [T, n] index of the current gate or goal
     cyl_pos: np.ndarray  # [T, M, 2] cylinder centres
     clearance: np.ndarray  # [T, n, M] m, surface gap drone-cylinder; NaN for absent cylinders
-    nbr_gap: np.ndarray  # [T, n, n-1] m, surface gap to each other drone, in observation order
-    attention: np.ndarray | None  # [T, n, M + n - 1] weights (cylinders, then neighbours); None without
+    nbr_gap: np.ndarray  # [T, n, K] m, surface gap to each observed neighbour, in observation order; NaN if absent
+    nbr_index: np.ndarray  # [T, n, K] which drone each observed neighbour is; -1 if absent
+    attention: np.ndarray | None  # [T, n, M + K] weights (cylinders, then neighbours); None without
     layout: Layout  # numpy leaves
     finished: np.ndarray  # [n] bool at the end
     collided: np.ndarray  # [n] bool at the end
@@ -66,9 +67,18 @@ class Episode:
         return int(stopped[0]) if len(stopped) else len(self.time) - 1
 
 
-def other_drones(n: int) -> np.ndarray:
-    """[n, n-1] the other drones of each drone, in the order of its observation's neighbour rows."""
-    return np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
+def observed_neighbours(env, pos: jax.Array, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(surface gap [n, K], drone index [n, K]) of each drone's observed neighbour rows; NaN and -1 where absent.
+
+    Read from the observation, so it holds for every neighbour mode (all in index order, or the K nearest)."""
+    r = env.config.cf.collision_radius
+    nbr = env.obs_layout.split(obs)[2]  # [n, K, 7]
+    present = nbr[..., 6] > 0.5
+    gap = jnp.where(present, jnp.linalg.norm(nbr[..., :3], axis=-1) - 2 * r, jnp.nan)
+    # The neighbour is the drone at the observed offset (to float round-off): the nearest one to that point.
+    seen = pos[:, None] + nbr[..., :3]  # [n, K, 3]
+    index = jnp.argmin(jnp.linalg.norm(seen[:, :, None] - pos[None, None], axis=-1), axis=-1)
+    return gap, jnp.where(present, index, -1)
 
 
 def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode:
@@ -79,7 +89,6 @@ def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode
     env = env or agent.env
     cfg = env.config
     n, r = env.num_agents, cfg.cf.collision_radius
-    others = other_drones(n)
     with_attention = agent.config.uses_attention
 
     def snapshot(s, params, obs_norm):
@@ -87,11 +96,12 @@ def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode
         cyl, _ = cylinders_at(s.layout, s.data.time)
         lay = s.layout
         clear = col.cylinder_clearance(ds.pos, cyl, lay.cyl_radius, lay.cyl_height, lay.cyl_present, r)
-        gap = jnp.linalg.norm(ds.pos[others] - ds.pos[:, None], axis=-1) - 2 * r
+        gap, index = observed_neighbours(env, ds.pos, s.obs)
         att = agent.cbf_params(params, obs_norm, s.obs)[1] if with_attention else jnp.zeros(())
         tr = s.tracker
         return dict(time=s.data.time, pos=ds.pos, quat=ds.quat, flying=~(tr.finished | tr.collided),
-                    target=tr.target, done=s.done, cyl_pos=cyl, clearance=clear, nbr_gap=gap, attention=att)
+                    target=tr.target, done=s.done, cyl_pos=cyl, clearance=clear, nbr_gap=gap, nbr_index=index,
+                    attention=att)
 
     # params and obs_norm are arguments, not constants: one compiled program serves every checkpoint.
     def run(key, params, obs_norm):
@@ -123,6 +133,7 @@ def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode
         method=agent.config.method, scenario=cfg.scenario, kind=SCENARIOS[cfg.scenario].kind,
         time=rec["time"], pos=rec["pos"], quat=rec["quat"], flying=rec["flying"].astype(bool),
         target=rec["target"], cyl_pos=rec["cyl_pos"], clearance=clearance, nbr_gap=rec["nbr_gap"],
+        nbr_index=rec["nbr_index"],
         attention=rec["attention"] if with_attention else None, layout=jax.tree.map(np.asarray, layout),
         finished=np.asarray(tracker.finished), collided=np.asarray(tracker.collided), collision_kind=kinds,
         metrics={k: float(v) for k, v in metrics.items()}, gate_half_opening=cfg.gate_half_opening,
@@ -354,18 +365,23 @@ def plot_attention(ep: Episode, out: str | Path, *, drone: int = 0, dpi: int = 1
         raise ValueError(f"invalid drone={drone}: allowed: 0 to {n - 1}")
     last = ep.last_index(drone)
     t = ep.time[: last + 1]
-    alpha = ep.attention[: last + 1, drone]  # [T, M + n - 1]
+    alpha = ep.attention[: last + 1, drone]  # [T, M + K]
     present = np.flatnonzero(ep.layout.cyl_present)
     cyl_colours = _colours(max(m, 1))
-    others = other_drones(n)[drone]
+    index = ep.nbr_index[: last + 1, drone]  # [T, K]
     fig = Figure(figsize=(10, 6.5), dpi=dpi, layout="constrained")
     ax_a, ax_d = fig.subplots(2, 1, sharex=True)
     for j in present:
         ax_a.plot(t, alpha[:, j], color=cyl_colours[j], lw=1.5, label=f"obstacle o{j}")
         ax_d.plot(t, ep.clearance[: last + 1, drone, j], color=cyl_colours[j], lw=1.5)
-    for q, other in enumerate(others):
+    for q in range(index.shape[1]):
+        seen = index[:, q][index[:, q] >= 0]
+        if len(seen) and np.all(seen == seen[0]):  # always the same drone (all neighbours, in index order)
+            label = f"drone {seen[0]}"
+        else:  # a slot of the K nearest: which drone it is changes
+            label = f"neighbour slot {q} (nearest first)"
         style = dict(color="0.35", lw=1.0, ls=(0, (4, 1 + 2 * q)))
-        ax_a.plot(t, alpha[:, m + q], label=f"drone {other}", **style)
+        ax_a.plot(t, alpha[:, m + q], label=label, **style)
         ax_d.plot(t, ep.nbr_gap[: last + 1, drone, q], **style)
     ax_d.axhline(0.0, color="red", lw=0.8)
     if ep.collided[drone] or ep.finished[drone]:

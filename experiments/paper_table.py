@@ -154,6 +154,9 @@ def table(results: list[dict], args: argparse.Namespace) -> tuple[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    from aswarm.agents import sharding
+
+    sharding.use_cpu_cores()  # train as `aswarm train` does: the worlds split over the CPU cores
     results = []
     t0 = time.perf_counter()
     for scenario in args.scenarios:

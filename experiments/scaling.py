@@ -148,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.tiny:
         args.worlds, args.drones, args.obstacles = [2, 4], [2, 3], [1, 2]
         args.base_worlds, args.steps, args.rollout_steps, args.updates = 4, 5, 4, 1
+    from aswarm.agents import sharding
+
+    sharding.use_cpu_cores()  # training points are laid out as `aswarm train` lays them out
     args.out.mkdir(parents=True, exist_ok=True)
     res = study(args)
     (args.out / "scaling.json").write_text(json.dumps(res, indent=2))

@@ -149,6 +149,31 @@ def test_staggered_track_start_holds_each_drone_until_its_release_time():
     assert z[0] > 0.02 and 0.0 < z[1] < z[0] / 5 and abs(z[2]) < 1e-3, z  # the controller lags the command
 
 
+def _layouts(env, episodes: int = 512):
+    return jax.jit(jax.vmap(lambda k: env.reset(k).layout))(jax.random.split(jax.random.PRNGKey(3), episodes))
+
+
+def _narrowest_static_gaps(env, lay) -> np.ndarray:
+    c, static = np.asarray(lay.cyl_center), np.asarray(lay.cyl_present & (lay.cyl_amplitude == 0))
+    gap = np.linalg.norm(c[:, :, None] - c[:, None], axis=-1) - 2 * env.config.obstacle_radius
+    pair = static[:, :, None] & static[:, None] & ~np.eye(c.shape[1], dtype=bool)
+    return np.where(pair, gap, np.inf).min(axis=(1, 2))
+
+
+def test_layouts_leave_every_gap_between_cylinders_wide_enough_for_the_filter():
+    for name in ("obstacles", "race", "lab"):
+        one, many = envs.make(name, layout_draws=1), envs.make(name)
+        lay_one, lay_many = _layouts(one), _layouts(many)
+        loose, kept = _narrowest_static_gaps(one, lay_one), _narrowest_static_gaps(many, lay_many)
+        assert np.all(kept >= many.config.min_obstacle_gap), name
+        # Draw 0 is the layout a single draw gives: where it keeps the rule, it is the one used.
+        fine = loose >= many.config.min_obstacle_gap
+        same = np.all(np.asarray(lay_one.cyl_center) == np.asarray(lay_many.cyl_center), axis=(1, 2))
+        np.testing.assert_array_equal(same, fine, err_msg=name)
+        if name == "obstacles":  # without the rule the grid often left gaps the filter (0.32 m) cannot pass
+            assert np.mean(loose < 0.32) > 0.1
+
+
 def test_reaching_the_goal_finishes_with_success_metrics():
     env = envs.make("hover", layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
@@ -201,6 +226,8 @@ def test_cost_rises_inside_the_safety_margin():
         ("race", {"sim_freq": 100, "ctrl_freq": 50}, r"invalid sim_freq=100: must be >= 240 Hz"),
         ("race", {"warp_drive": 1}, r"unknown env config field 'warp_drive'"),
         ("race", {"reward": "money"}, r"invalid reward='money': allowed: shaped, paper"),
+        ("obstacles", {"layout_draws": 0}, r"invalid layout_draws=0: must be >= 1"),
+        ("obstacles", {"min_obstacle_gap": -0.1}, r"invalid min_obstacle_gap=-0.1: must be >= 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(name, overrides, message):

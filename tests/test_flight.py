@@ -184,6 +184,36 @@ def test_numpy_observation_equals_the_simulators(race):
     np.testing.assert_allclose(obs, s.obs, rtol=0, atol=2e-5)
 
 
+@pytest.mark.parametrize("k", [2, 6])
+def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
+    from aswarm.envs.dynamics import DroneState
+
+    n = 5
+    env = envs.make("race", num_agents=n, max_neighbours=k)
+    s = env.reset(jax.random.PRNGKey(1))
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-1.5, 1.5, (n, 3)) + [0.0, 0.0, 1.6]
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    vel, ang = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    finished = np.array([False, True, False, False, False])  # drone 1 is no neighbour
+    tr = s.tracker.replace(finished=jnp.asarray(finished))
+    want = env._observe(DroneState(*(jnp.asarray(x, jnp.float32) for x in (pos, quat, vel, ang))), s.layout, tr,
+                        jnp.zeros(()))
+    lay = jax.tree.map(np.asarray, s.layout)
+    normals = np.broadcast_to(observe.gate_normals(lay.gate_yaw)[None], lay.waypoints.shape)
+    got = observe.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
+                          lay.cyl_center, np.zeros_like(lay.cyl_center), lay.cyl_radius, lay.cyl_present,
+                          env.config.cf.collision_radius, max_neighbours=k)
+    assert got.shape == (n, env.observation_size)
+    np.testing.assert_allclose(got, np.asarray(want), rtol=0, atol=2e-5)
+    nbr = env.obs_layout.split(got)[2]  # [n, k, 7]: nearest first, then absent rows
+    present = nbr[..., 6]
+    assert np.all(np.diff(present, axis=-1) <= 0)  # present rows first
+    assert np.all(present.sum(-1) == np.minimum(k, np.where(finished, 4, 3)))
+    dist = np.linalg.norm(nbr[..., :3], axis=-1)
+    assert all(np.all(np.diff(d[p > 0]) >= 0) for d, p in zip(dist, present))  # nearest first
+
+
 def test_numpy_policy_and_filter_match_jax_on_recorded_states(race):
     """Normalizer + actor + attention gain + CBF filter against ``Agent.act`` on every recorded state.
 
@@ -531,7 +561,7 @@ def test_fly_refuses_bad_input_and_stops_on_an_exception(synthetic, tmp_path, ca
     assert lines[-1] == "EMERGENCY STOP all"
 
 
-def test_fly_module_runs_without_jax(synthetic, tmp_path):
+def test_aswarm_fly_runs_without_jax(synthetic, tmp_path):
     csv = _replay_csv(tmp_path / "poses.csv", steps=10)
     code = textwrap.dedent(f"""
         import importlib.abc, sys
@@ -540,8 +570,8 @@ def test_fly_module_runs_without_jax(synthetic, tmp_path):
                 if name.split(".")[0] in {BLOCKED!r}:
                     raise ImportError("blocked: " + name)
         sys.meta_path.insert(0, Block())
-        from aswarm.flight import fly
-        sys.exit(fly.main(["--bundle", {str(synthetic.path)!r}, "--uris", {URIS!r}, "--mocap",
+        from aswarm import cli  # `aswarm fly`: the main command line hands over before importing JAX
+        sys.exit(cli.main(["fly", "--bundle", {str(synthetic.path)!r}, "--uris", {URIS!r}, "--mocap",
                            "replay:{csv}", "--dry-run"]))
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

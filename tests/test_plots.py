@@ -45,7 +45,13 @@ def test_recorded_episode_is_consistent(policy, episode):
     assert 2 <= t <= agent.env.config.max_steps + 1
     assert episode.pos.shape == (t, n, 3) and episode.quat.shape == (t, n, 4)
     assert episode.attention.shape == (t, n, m + n - 1) and episode.clearance.shape == (t, n, m)
-    assert episode.nbr_gap.shape == (t, n, n - 1) and episode.cyl_pos.shape == (t, m, 2)
+    assert episode.nbr_gap.shape == episode.nbr_index.shape == (t, n, n - 1) and episode.cyl_pos.shape == (t, m, 2)
+    # All neighbours in index order: drone i's rows are the other drones, while they fly.
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])
+    seen = episode.nbr_index >= 0
+    assert seen[0].all() and np.all(np.where(seen, episode.nbr_index, others[None]) == others[None])
+    gap0 = np.linalg.norm(episode.pos[0, others] - episode.pos[0, :, None], axis=-1) - 2 * episode.drone_radius
+    np.testing.assert_allclose(episode.nbr_gap[0], gap0, atol=1e-5)
     assert np.all(np.diff(episode.time) > 0)
     np.testing.assert_allclose(episode.attention.sum(-1), 1.0, atol=1e-5)  # every hazard is present here
     np.testing.assert_allclose(episode.pos[0], np.asarray(episode.layout.start_pos), atol=1e-6)

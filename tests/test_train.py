@@ -182,3 +182,36 @@ def test_cli_reports_bad_values_in_one_line(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["train", "--gamma", "abc"])
     assert e.value.code == 2 and "invalid gamma='abc': allowed: a number" in capsys.readouterr().err
+
+
+def test_correction_penalty_charges_the_filters_correction_in_the_training_reward():
+    from aswarm.agents.train import make_train
+
+    # A low fixed gain makes the floor barrier slow every random descent faster than 0.25 m/s.
+    base = dict(method="fixed_cbf", fixed_gain=0.3, scenario="obstacles", num_envs=16, rollout_steps=8,
+                minibatches=2, total_steps=16 * 8)
+    metrics = {}
+    for c in (0.0, 5.0):
+        _, init, update_chunk, _ = make_train(TrainConfig(correction_penalty=c, **base))
+        _, m = jax.jit(update_chunk, static_argnums=1)(jax.jit(init)(jax.random.PRNGKey(0)), 1)
+        metrics[c] = {k: float(v[0]) for k, v in m.items()}
+    m0, m5 = metrics[0.0], metrics[5.0]
+    # The first rollout is the same (same params and keys): only the reward the learner sees differs.
+    assert m0["safety/intervention_rate"] == m5["safety/intervention_rate"] > 0.05
+    assert m0["safety/correction_penalty"] == 0.0 and m5["safety/correction_penalty"] > 0.0
+    np.testing.assert_allclose(m0["train/step_reward"] - m5["train/step_reward"], m5["safety/correction_penalty"],
+                               rtol=1e-4)
+    assert m0["episode/episode_return"] == m5["episode/episode_return"]  # the env's return is not charged
+
+
+def test_policy_with_k_nearest_neighbours_flies_other_swarm_sizes(tmp_path):
+    from aswarm.agents import evaluate
+
+    cfg = TrainConfig(scenario="obstacles", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
+                      total_steps=16 * 8, env_overrides=(("max_neighbours", 2),))
+    run = runner.train(cfg, tmp_path / "k2", progress=False)
+    for n in (1, 6):  # fewer drones than K (absent rows) and more (the 2 nearest)
+        out = evaluate.evaluate_checkpoint(run, episodes=4, env_overrides=[f"num_agents={n}"])
+        assert out["num_agents"] == n and out["episodes"] == 4 and 0.0 <= out["drone_success_rate"] <= 1.0
+    with pytest.raises(ValueError, match="observation layouts differ"):
+        evaluate.evaluate_checkpoint(run, episodes=4, env_overrides=["num_agents=6", "max_neighbours=0"])

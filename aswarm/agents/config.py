@@ -57,6 +57,15 @@ class TrainConfig:
     gain_max: float = 2.0
     fixed_gain: float = 1.5  # fixed_cbf
     filter_margin: float = 0.1  # m, kept on top of the collision distance by the filter
+    # Training reward per second per m/s of the filter's correction ||u_safe - u_nom|| (methods with the
+    # filter): without it the policy never paid for commanding into the filter, and its mean command
+    # deadlocked in pockets between cylinders that exploration noise had shaken it out of in training.
+    correction_penalty: float = 0.0
+    # Devices the worlds are split over (data-parallel, gradients averaged): 0 takes as many of the visible
+    # devices as divide num_envs, and the run folder records the number used, so a resume lays itself out
+    # the same way. On a CPU each core is a device (sharding.use_cpu_cores): 2 cores trained the race at
+    # 1.33x the env-steps/s of one device holding both (BENCHMARKS.md).
+    devices: int = 0
     # Host loop.
     checkpoint_minutes: float = 5.0
     updates_per_chunk: int = 10
@@ -69,6 +78,10 @@ class TrainConfig:
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"invalid {f.name}={v!r}: must be a finite number")
+        if self.correction_penalty < 0:
+            raise ValueError(f"invalid correction_penalty={self.correction_penalty}: must be >= 0")
+        if self.devices < 0:
+            raise ValueError(f"invalid devices={self.devices}: must be >= 0 (0: as many as divide num_envs)")
         for name in ("total_steps", "num_envs", "rollout_steps", "epochs", "minibatches", "updates_per_chunk",
                      "cbf_embed", "cbf_state_hidden"):
             if getattr(self, name) <= 0:

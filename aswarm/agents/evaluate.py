@@ -105,11 +105,17 @@ def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
     overrides.update(config_args.parse_assignments(env_overrides or [], envs.EnvConfig))
     env = envs.make(scenario or config.scenario, **overrides)
     trained = envs.make(config.scenario, **dict(config.env_overrides))
-    if env.observation_size != trained.observation_size or env.num_agents != trained.num_agents:
+    # The actor and the filter run per drone on its own observation row, so a policy flies any number of drones
+    # whose rows have its layout (max_neighbours fixes the neighbour rows); the centralized critics, which do
+    # depend on the number of drones, are not used here.
+    if env.obs_layout != trained.obs_layout:
+        hint = ("" if env.config.max_neighbours else
+                "; for another number of drones, train with --env max_neighbours=K and evaluate with the same K")
         raise ValueError(
-            f"checkpoint was trained on {config.scenario!r} with {trained.num_agents} drones and observations of "
-            f"size {trained.observation_size}; scenario {env.config.scenario!r} has {env.num_agents} drones and "
-            f"size {env.observation_size}: the centralized critic and observation layout do not transfer")
+            f"checkpoint was trained on {config.scenario!r} with {trained.num_agents} drones, observing "
+            f"{trained.obs_layout.num_cylinders} cylinders and {trained.obs_layout.num_neighbours} neighbours; "
+            f"scenario {env.config.scenario!r} with {env.num_agents} drones gives {env.obs_layout.num_cylinders} "
+            f"and {env.obs_layout.num_neighbours}: the observation layouts differ{hint}")
     return config, Agent.build(config, env), restored
 
 
@@ -155,7 +161,7 @@ def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: i
     rec, ended, intervention_rate = rollout_episodes(agent, restored["params"], restored["obs_norm"], env, episodes,
                                                      jax.random.PRNGKey(seed))
     out = {"checkpoint": str(checkpoint_dir), "method": config.method, "scenario": env.config.scenario,
-           "episodes": episodes, "seed": seed, "trained_updates": int(restored["update"]),
+           "num_agents": env.num_agents, "episodes": episodes, "seed": seed, "trained_updates": int(restored["update"]),
            "env_overrides": sorted(env_overrides or []), "episodes_ended": int(np.sum(np.asarray(ended)))}
     out.update(summarize({k: np.asarray(v) for k, v in rec.items()}, float(intervention_rate)))
     return out

@@ -20,7 +20,7 @@ from aswarm.agents.config import TrainConfig
 # Read inside the jitted update (losses, GAE, optimizer) or by the CBF network's output scaling.
 VALUE_FIELDS: tuple[str, ...] = (
     "actor_lr", "critic_lr", "cbf_lr", "max_grad_norm", "clip", "gae_lambda", "gamma", "cbf_coef", "value_coef",
-    "entropy_coef", "cost_limit", "lagrange_init", "penalty_max", "gain_min", "gain_max",
+    "entropy_coef", "cost_limit", "lagrange_init", "penalty_max", "gain_min", "gain_max", "correction_penalty",
 )
 # The subset the attention-CBF network reads: it is rebuilt with traced bounds when any is swept.
 NETWORK_FIELDS: tuple[str, ...] = ("penalty_max", "gain_min", "gain_max")

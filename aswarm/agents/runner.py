@@ -11,7 +11,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from aswarm.agents import checkpoint
+from aswarm.agents import checkpoint, sharding
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import make_train
 
@@ -51,16 +51,20 @@ def train(config: TrainConfig, run_dir: Path | None = None, resume: bool = False
         config = checkpoint.load_config(run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise ValueError(f"run folder {run_dir} already holds checkpoints: use --resume {run_dir} or another --out")
-    agent, init, update_chunk, _ = make_train(config)
+    mesh = sharding.training_mesh(config.num_envs, config.devices)
+    # The number of devices changes the order of floating-point sums: record it, so a resume matches.
+    config = dataclasses.replace(config, devices=int(mesh.devices.size))
+    agent, init, update_chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         write_config(run_dir, config, agent.env.config)
     mngr = checkpoint.manager(run_dir)
-    init_fn = jax.jit(init)
-    chunk_fn = jax.jit(update_chunk, static_argnums=1)
-    ts = init_fn(jax.random.PRNGKey(config.seed))
+    key = jax.random.PRNGKey(config.seed)
+    init_fn, chunk_fn = sharding.sharded_fns(init, update_chunk, jax.eval_shape(init, key), mesh, stacked=False)
+    ts = init_fn(key)
     if resume:
-        ts = checkpoint.restore(mngr, ts)
+        layout = sharding.state_shardings(mesh, ts, stacked=False)
+        ts = jax.tree.map(sharding.put, checkpoint.restore(mngr, sharding.fetch(ts)), layout)
         _truncate_log(run_dir / "metrics.jsonl", int(ts.update))
     start = int(ts.update)
     total = config.num_updates
@@ -73,10 +77,10 @@ def train(config: TrainConfig, run_dir: Path | None = None, resume: bool = False
         t_prev = time.monotonic()
         while int(ts.update) < stop:
             k = min(config.updates_per_chunk, stop - int(ts.update))
-            new_ts, metrics = chunk_fn(ts, k)
+            new_ts, metrics = chunk_fn(ts, k)  # donates ts
             metrics = jax.device_get(metrics)
             if not (_finite(metrics["train/loss"]) and _finite(new_ts.params)):
-                bad = int(ts.update) + int(np.argmax(~np.isfinite(metrics["train/loss"])))
+                bad = int(new_ts.update) - k + int(np.argmax(~np.isfinite(metrics["train/loss"])))
                 raise TrainingDiverged(
                     f"loss or parameters became NaN/Inf at update {bad}; the last good checkpoint "
                     f"(update {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
@@ -99,7 +103,7 @@ def train(config: TrainConfig, run_dir: Path | None = None, resume: bool = False
             bar.update(k)
             done = int(ts.update) >= stop
             if done or now - last_save > 60 * config.checkpoint_minutes:
-                checkpoint.save(mngr, int(ts.update), ts)
+                checkpoint.save(mngr, int(ts.update), sharding.for_checkpoint(sharding.fetch(ts)))
                 last_save = now
     finally:
         bar.close()

@@ -29,7 +29,8 @@ class Transition(NamedTuple):
     final_obs: jax.Array  # [B, n, D] raw obs reached by the step, before any auto-reset
     raw_action: jax.Array  # [B, n, 3] pre-tanh sample
     log_prob: jax.Array  # [B, n]
-    reward: jax.Array  # [B, n]
+    reward: jax.Array  # [B, n] the env's reward minus the correction penalty
+    penalty: jax.Array  # [B, n] that correction penalty
     cost: jax.Array  # [B, n]
     done: jax.Array  # [B]
     truncated: jax.Array  # [B]
@@ -82,13 +83,14 @@ class Agent:
     def init_params(self, key: jax.Array) -> dict:
         d = self.env.observation_size
         n = self.env.num_agents
+        layout = self.env.obs_layout
         k = jax.random.split(key, 4)
         obs = jnp.zeros((n, d))
         return {
             "actor": self.actor.init(k[0], obs),
             "critic": self.critic.init(k[1], obs.reshape(-1)),
             "cost_critic": self.cost_critic.init(k[2], obs.reshape(-1)),
-            "cbf": self.cbf.init(k[3], obs, jnp.ones((n, self.env.obs_layout.num_cylinders + n - 1), bool)),
+            "cbf": self.cbf.init(k[3], obs, jnp.ones((n, layout.num_cylinders + layout.num_neighbours), bool)),
             "lagrange": jnp.asarray(self.config.lagrange_init, jnp.float32),
         }
 
@@ -194,7 +196,8 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
                           env_steps=jnp.zeros((), jnp.float32), hparams=values)
 
     def rollout(ts: TrainState, key: jax.Array):
-        ag = agent_for(hparams.resolve(config, ts.hparams))
+        h = hparams.resolve(config, ts.hparams)
+        ag = agent_for(h)
 
         def step(env_state, k):
             obs = env_state.obs
@@ -204,8 +207,11 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
             done = nxt.done
             episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}
             episode["episodes"] = jnp.sum(done)
-            return nxt, Transition(obs, nxt.info["final_obs"], raw, logp, nxt.reward, nxt.cost, done,
-                                   nxt.truncated, intervened, corr, episode)
+            # The training reward also charges the filter's correction (the env's reward, and so the
+            # logged return, does not).
+            penalty = h["correction_penalty"] * env.config.dt * corr * env.flying(env_state)
+            return nxt, Transition(obs, nxt.info["final_obs"], raw, logp, nxt.reward - penalty, penalty, nxt.cost,
+                                   done, nxt.truncated, intervened, corr, episode)
 
         return jax.lax.scan(step, ts.env_state, jax.random.split(key, config.rollout_steps))
 
@@ -294,6 +300,7 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         metrics["train/step_cost"] = jnp.mean(tr.cost)
         metrics["safety/intervention_rate"] = jnp.mean(tr.intervened)
         metrics["safety/mean_correction"] = jnp.sum(tr.correction) / jnp.maximum(jnp.sum(tr.intervened), 1.0)
+        metrics["safety/correction_penalty"] = jnp.mean(tr.penalty)
         metrics["train/cost_excess"] = excess
         ts = ts.replace(params=params, opt_state=opt_state, obs_norm=obs_norm, env_state=env_state, key=key,
                         update=ts.update + 1, env_steps=ts.env_steps + config.steps_per_update)

@@ -33,10 +33,20 @@ class EnvConfig:
     obstacle_spacing: float = 1.5  # between obstacle slots along the track / grid
     obstacle_lateral: float = 0.6  # random offset of a static obstacle from the racing line
     gate_clearance: float = 1.2  # no obstacle slot closer than this (along the track) to a gate or the start
+    # Smallest surface gap (m) between two static cylinders. A narrower gap is a dead end for the CBF filter,
+    # which needs 2 (drone radius + margin) = 0.32 m at the defaults: it held drones at the mouth of 0.15-0.19 m
+    # gaps between 2 cylinders until time ran out (4 % of `obstacles` episodes, README). Layouts redraw the
+    # offsets of the static cylinders (up to layout_draws times) until every gap is at least this wide.
+    min_obstacle_gap: float = 0.45
+    layout_draws: int = 16
     moving_amplitude: float = 0.8
     moving_period: float = 4.0  # s
     goal_radius: float = 0.2
     start_spacing: float = 0.5
+    # Neighbours in each drone's observation. 0: every other drone, in index order (the row grows with n, and
+    # so does the cost per drone). K >= 1: the K nearest drones still flying, nearest first, padded with absent
+    # rows when there are fewer: the row, and so a trained actor and its filter, no longer depend on n.
+    max_neighbours: int = 0
     # Track starts: "column", single file along the racing line, so the swarm reaches each gate one
     # drone at a time (a 4-drone grid jammed at the first gate, see README); or a compact "grid".
     start_formation: str = "column"
@@ -115,12 +125,12 @@ def validate(c: EnvConfig) -> None:
     _check_finite("cf.", c.cf)
     _check_finite("gains.", c.gains)
     for name in ("num_agents", "num_obstacles", "num_moving", "min_moving", "num_gates",
-                 "sim_freq", "ctrl_freq", "policy_freq"):
+                 "sim_freq", "ctrl_freq", "policy_freq", "layout_draws", "max_neighbours"):
         if not isinstance(getattr(c, name), int) or isinstance(getattr(c, name), bool):
             _fail(name, getattr(c, name), "must be an integer")
     if not 1 <= c.num_agents <= MAX_AGENTS:
         _fail("num_agents", c.num_agents, f"must be between 1 and {MAX_AGENTS}")
-    for name in ("num_obstacles", "num_moving", "min_moving", "num_gates"):
+    for name in ("num_obstacles", "num_moving", "min_moving", "num_gates", "max_neighbours"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.min_moving > c.num_moving:
@@ -143,6 +153,10 @@ def validate(c: EnvConfig) -> None:
         _fail("start_interval", c.start_interval, "must be >= 0")
     if c.layout_jitter < 0:
         _fail("layout_jitter", c.layout_jitter, "must be >= 0")
+    if c.min_obstacle_gap < 0:
+        _fail("min_obstacle_gap", c.min_obstacle_gap, "must be >= 0")
+    if c.layout_draws < 1:
+        _fail("layout_draws", c.layout_draws, "must be >= 1")
     if c.start_formation not in FORMATIONS:
         _fail("start_formation", c.start_formation, f"allowed: {', '.join(FORMATIONS)}")
     if c.reward not in REWARDS:

@@ -224,12 +224,25 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
 
     # Cylinders: a random subset of slots, jittered inside the slot.
     slots = jax.random.permutation(k_slot, len(geo.slot_pos))[:m]
-    ko = jax.random.split(k_off, 2)
     static = jnp.arange(m) < cfg.num_obstacles
-    lateral = jnp.where(static, u(ko[0], (m,), cfg.obstacle_lateral * j), 0.0)
-    along = u(ko[1], (m,), 0.2 * j)
     normal, tangent = jnp.asarray(geo.slot_normal)[slots], jnp.asarray(geo.slot_tangent)[slots]
-    center = jnp.asarray(geo.slot_pos)[slots] + normal * lateral[:, None] + tangent * along[:, None]
+
+    def offsets(k):
+        ko = jax.random.split(k, 2)
+        lateral = jnp.where(static, u(ko[0], (m,), cfg.obstacle_lateral * j), 0.0)
+        along = u(ko[1], (m,), 0.2 * j)
+        return jnp.asarray(geo.slot_pos)[slots] + normal * lateral[:, None] + tangent * along[:, None]
+
+    # Draw 0 is from k_off itself, so a scenario whose slots are too far apart ever to break the gap rule
+    # (the race) keeps the layouts it always had; later draws replace it only where it breaks the rule.
+    draws = jnp.stack([offsets(k_off)] + [offsets(jax.random.fold_in(k_off, i)) for i in range(1, cfg.layout_draws)])
+    pair = jnp.linalg.norm(draws[:, :, None] - draws[:, None, :], axis=-1) - 2 * cfg.obstacle_radius
+    both = static[:, None] & static[None, :] & ~np.eye(m, dtype=bool)
+    narrowest = jnp.min(jnp.where(both, pair, jnp.inf), axis=(1, 2), initial=jnp.inf)  # [draws]
+    ok = narrowest >= cfg.min_obstacle_gap
+    # The first draw that keeps every gap; if none does (a config packed too tightly), the widest.
+    pick = jnp.where(jnp.any(ok), jnp.argmax(ok), jnp.argmax(narrowest))
+    center = draws[pick]
     n_moving = jax.random.randint(k_count, (), cfg.min_moving, cfg.num_moving + 1)
     present = static | (jnp.arange(m) - cfg.num_obstacles < n_moving)
     omega = jnp.where(static, 0.0, 2 * np.pi / cfg.moving_period)

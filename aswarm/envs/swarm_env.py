@@ -64,6 +64,17 @@ class State:
     info: dict
 
 
+def nearest_rows(nbr: jax.Array, present: jax.Array, k: int) -> jax.Array:
+    """Neighbour rows [n, n-1, D] (relative position first) -> the ``k`` nearest present ones, nearest first,
+    then absent (zero) rows: [n, k, D]. Ties keep index order."""
+    n, m = present.shape
+    dist = jnp.where(present, jnp.linalg.norm(nbr[..., :3], axis=-1), jnp.inf)
+    order = jnp.argsort(dist, axis=-1, stable=True)[:, :k]
+    rows = jnp.take_along_axis(nbr, order[..., None], axis=1)
+    rows = jnp.where(jnp.take_along_axis(present, order, axis=1)[..., None], rows, 0.0)
+    return jnp.concatenate([rows, jnp.zeros((n, max(k - m, 0), nbr.shape[-1]), nbr.dtype)], axis=1)
+
+
 class SwarmEnv:
     """A scenario's swarm environment. Use :func:`aswarm.envs.make` to build one."""
 
@@ -74,7 +85,7 @@ class SwarmEnv:
         self.mj_model, self.mjx_model = physics_model(config.num_agents, config.sim_freq, config.cf)
         self._data0 = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])  # see physics_model
         n = config.num_agents
-        self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=n - 1)
+        self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=config.max_neighbours or n - 1)
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
         self._others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
@@ -134,8 +145,7 @@ class SwarmEnv:
         # Inside jit a NaN cannot raise; a NaN command becomes a hover command.
         cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -cfg.max_speed, cfg.max_speed)
         tr0 = state.tracker
-        # Flying and released (staggered track starts): the others hover where they are.
-        active0 = ~tr0.finished & (state.data.time >= self._release_time)
+        active0 = self.flying(state)
         cmd = jnp.where(active0[:, None], cmd, 0.0)
         layout = state.layout
         frames = col.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
@@ -197,6 +207,11 @@ class SwarmEnv:
         )
 
     # --------------------------------------------------------------- helpers
+    def flying(self, state: State) -> jax.Array:
+        """[..., n] bool: drones not finished and released (staggered track starts); the others hover and
+        earn neither reward nor cost. Works on a batch of states too."""
+        return ~state.tracker.finished & (state.data.time[..., None] >= self._release_time)
+
     def check_action(self, action) -> None:
         """Raise ``ValueError`` for an action of the wrong shape, or (outside jit) with NaN/Inf."""
         want = (self.num_agents, 3)
@@ -295,6 +310,8 @@ class SwarmEnv:
         nbr = jnp.concatenate([drones.pos[others] - drones.pos[:, None], drones.vel[others] - drones.vel[:, None],
                                jnp.ones(others.shape + (1,))], -1)
         nbr = jnp.where(flying[others][..., None], nbr, 0.0)
+        if cfg.max_neighbours:
+            nbr = nearest_rows(nbr, flying[others], cfg.max_neighbours)
         return jnp.concatenate([own, cyl.reshape(n, -1), nbr.reshape(n, -1)], -1)
 
     def _metrics(self, tr: Tracker) -> dict:

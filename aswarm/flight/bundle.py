@@ -155,6 +155,11 @@ class Bundle:
         return int(self.env["num_agents"])
 
     @property
+    def max_neighbours(self) -> int:
+        """0: every other drone is observed, in index order; K: the K nearest (``EnvConfig.max_neighbours``)."""
+        return int(self.env.get("max_neighbours", 0))
+
+    @property
     def max_speed(self) -> float:
         return float(self.env["max_speed"])
 
@@ -215,7 +220,8 @@ def bundle_from(manifest: Mapping, arrays: Mapping[str, np.ndarray], path: Path 
         if not np.all(np.isfinite(a)):
             raise BundleError(f"array {name} holds NaN or Inf: the policy cannot be flown")
     n, m = int(env["num_agents"]), int(env["num_cylinders"])
-    layout = ObsLayout(num_cylinders=m, num_neighbours=n - 1)
+    # Bundles from before max_neighbours observed every other drone.
+    layout = ObsLayout(num_cylinders=m, num_neighbours=int(env.get("max_neighbours", 0)) or n - 1)
     if obs.get("fields") != layout.describe() or obs.get("size") != layout.size:
         raise BundleError(f"the bundle's observation layout (size {obs.get('size')}) is not the one this runtime "
                           f"builds for {n} drones and {m} cylinders (size {layout.size}): export it with this version")

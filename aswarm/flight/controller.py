@@ -29,7 +29,7 @@ import numpy as np
 
 from aswarm.flight import cbf, estimator, policy
 from aswarm.flight.bundle import Bundle
-from aswarm.flight.observe import gate_crossed, gate_normals, observe
+from aswarm.flight.observe import crossed_gate, gate_normals, observe
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,6 +139,8 @@ class FlightController:
             wp = np.broadcast_to(gates[..., None, :, :3], lead + (self.n, self.num_gates, 3))
             nrm = np.broadcast_to(gate_normals(gates[..., None, :, 3]), wp.shape)
             self._gates = gates.reshape((-1, self.num_gates, 4))
+            # Each gate's centre and direction of passage [B, G, 6], for the crossing test of every step.
+            self._gate_geo = np.concatenate([self._gates[..., :3], gate_normals(self._gates[..., 3])], -1)
         else:
             if goals is None:
                 raise ValueError(f"scenario kind {kind!r} needs goals: allowed: an array [..., {self.n}, 3]")
@@ -163,6 +165,11 @@ class FlightController:
         self._flags = np.zeros((len(EVENT_KINDS), B, self.n), bool)
         self._rows = np.arange(B)[:, None]
         self._t_reset: np.ndarray | None = None
+        # What _obstacle_arrays returns without obstacles, and its every-obstacle-present flags (read-only).
+        M = self.num_cylinders
+        self._no_obstacles = tuple(_read_only(a) for a in (np.zeros((B, M, 2)), np.zeros((B, M, 2)), np.zeros((B, M)),
+                                                           np.zeros((B, M), bool), np.zeros((B, self.n), bool)))
+        self._all_present = _read_only(np.ones((B, M), bool))
 
     # ------------------------------------------------------------------ step
     def step(self, positions, quats, timestamps, now=None, obstacles: Obstacles | None = None) -> StepResult:
@@ -180,10 +187,14 @@ class FlightController:
         valid = np.isfinite(pos).all(-1) & np.isfinite(ts) & (qn > 0.5) & (qn < 2.0)  # NaN compares false
         # Unit quaternions with w >= 0: q and -q are the same attitude, and the simulator's start at
         # [1, 0, 0, 0] keeps w > 0 for any attitude a flying drone reaches.
-        scale = np.where(valid, np.where(quat[:, :, 0] < 0, -1.0, 1.0) / np.where(valid, qn, 1.0), 0.0)
-        quat = np.where(valid[:, :, None], quat * scale[:, :, None], 0.0)
-        pos = np.where(valid[:, :, None], pos, 0.0)
-        ts = np.where(valid, ts, -np.inf)
+        sign = np.where(quat[:, :, 0] < 0, -1.0, 1.0)
+        if valid.all():  # the usual case: the same numbers as below without the masking
+            quat = quat * (sign / qn)[:, :, None]
+        else:
+            scale = np.where(valid, sign / np.where(valid, qn, 1.0), 0.0)
+            quat = np.where(valid[:, :, None], quat * scale[:, :, None], 0.0)
+            pos = np.where(valid[:, :, None], pos, 0.0)
+            ts = np.where(valid, ts, -np.inf)
         if now is None:
             now_b = np.maximum(ts.max(-1), self._est.t[:, :, -1].max(-1))
             now_b = np.where(np.isfinite(now_b), now_b, 0.0)
@@ -197,17 +208,24 @@ class FlightController:
         self._est, accepted, glitch = estimator.update(self._est, ts, pos, quat, valid, self.estimation)
         seen = self._est.count > 0
         t_last, p, q = estimator.latest(self._est)
-        age = now_b[:, None] - np.where(seen, t_last, self._t_reset[:, None])
-        stale = seen & (age > self.safety.stale_after)
-        blind = ~(seen & valid) | glitch | stale
-        fence = seen & ((p < self.low) | (p > self.high)).any(-1)
+        out_of_fence = ((p < self.low) | (p > self.high)).any(-1)
+        if seen.all():  # every drone has had a pose (in flight): what the masking below gives then
+            age = now_b[:, None] - t_last
+            stale = age > self.safety.stale_after
+            blind = ~valid | glitch | stale
+            fence = out_of_fence
+        else:
+            age = now_b[:, None] - np.where(seen, t_last, self._t_reset[:, None])
+            stale = seen & (age > self.safety.stale_after)
+            blind = ~(seen & valid) | glitch | stale
+            fence = seen & out_of_fence
 
         # Progress along the course, on fresh poses only (the simulator's crossing test).
         moved = accepted & prev_seen & ~self._finished
         if self._gates is not None:
             k = np.minimum(self._target, self.num_gates - 1)
-            gate = self._gates[self._rows, k]  # [B, n, 4]
-            crossed = moved & gate_crossed(prev_pos, p, gate[..., :3], gate[..., 3], self._half_opening)
+            gate = self._gate_geo[self._rows, k]  # [B, n, 6]
+            crossed = moved & crossed_gate(prev_pos, p, gate[..., :3], gate[..., 3:], self._half_opening)
             self._target = self._target + crossed
             reached = self._target >= self.num_gates
         else:
@@ -221,17 +239,24 @@ class FlightController:
         vel, ang = estimator.estimate(self._est, self.estimation)
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
-                      cyl_present, self._collision_radius)
+                      cyl_present, self._collision_radius, self.bundle.max_neighbours)
         pol = run_policy(self.bundle, obs)
 
         u = pol.u
         nonfinite = ~np.isfinite(u).all(-1)
         hover = blind | self._landing | nonfinite
-        u = np.clip(np.where(hover[:, :, None], 0.0, u), -self.max_speed, self.max_speed)
+        u = np.where(hover[:, :, None], 0.0, u)
+        np.maximum(u, -self.max_speed, out=u)  # np.clip, in place
+        np.minimum(u, self.max_speed, out=u)
 
-        flags = np.stack([~valid, stale, glitch, fence, self._landing, newly_finished, nonfinite,
-                          pol.intervened & ~pol.converged & ~hover, lost_obstacles])
-        start = flags & ~self._flags
+        # One row per EVENT_KINDS entry, written in place (np.stack of small arrays costs several times more).
+        flags = np.empty((len(EVENT_KINDS), B, n), bool)
+        np.invert(valid, out=flags[0])
+        flags[1], flags[2], flags[3], flags[4], flags[5], flags[6] = (stale, glitch, fence, self._landing,
+                                                                      newly_finished, nonfinite)
+        np.greater(pol.intervened, pol.converged | hover, out=flags[7])  # intervened & ~converged & ~hover
+        flags[8] = lost_obstacles
+        start = flags > self._flags  # flags & ~previous flags
         self._flags = flags
         events = []
         if start.any():
@@ -244,7 +269,7 @@ class FlightController:
             return a.reshape(lead + a.shape[1:])
 
         return StepResult(velocity=out(u), land=out(self._landing.copy()), hover=out(hover), events=events,
-                          nominal=out(pol.nominal), intervened=out(pol.intervened & ~hover), gain=out(pol.gain),
+                          nominal=out(pol.nominal), intervened=out(pol.intervened > hover), gain=out(pol.gain),
                           target=out(self._target.copy()), finished=out(self._finished.copy()), obs=out(obs))
 
     # ------------------------------------------------------------------ parts
@@ -256,40 +281,52 @@ class FlightController:
         return x.reshape((self.B,) + tail)
 
     def _obstacle_arrays(self, obstacles: Obstacles | None):
+        """(pos [B, M, 2], vel [B, M, 2], radius [B, M], present [B, M], lost [B, n]) as observe takes them."""
+        if obstacles is None:
+            return self._no_obstacles
         B, M = self.B, self.num_cylinders
+        op = np.asarray(obstacles.pos, np.float64)
+        m = op.shape[-2] if op.ndim >= 2 else -1
+        if op.shape != self._lead + (m, 2) or m < 0:
+            raise ValueError(f"obstacles.pos has shape {op.shape}: allowed shape is {self._lead + (M, 2)} "
+                             f"(at most {M} cylinders)")
+        if m > M:
+            raise ValueError(f"{m} obstacles but the policy observes at most {M}: flying blind to the others "
+                             "is unsafe; export a policy trained with more cylinders or remove some")
+        op = op.reshape(B, m, 2)
+        rad = _shaped(obstacles.radius, self._lead + (m,), np.float64).reshape(B, m)
+        ov = (None if obstacles.vel is None
+              else _shaped(obstacles.vel, self._lead + (m, 2), np.float64).reshape(B, m, 2))
+        seen = np.isfinite(op).all(-1)
+        if obstacles.present is None and m == M and seen.all():
+            # The usual case, every step: all M obstacles present and seen. What the general case
+            # below computes then, without its masking.
+            if not (rad >= 0).all() or not np.isfinite(rad).all():
+                raise ValueError("obstacles.radius must be finite and >= 0 for every present obstacle")
+            self._obstacles[:] = op
+            self._known[:] = True
+            vel = self._no_obstacles[1] if ov is None else np.where(np.isfinite(ov), ov, 0.0)
+            return op, vel, rad, self._all_present, self._no_obstacles[4]
+        pr = (np.ones((B, m), bool) if obstacles.present is None
+              else _shaped(obstacles.present, self._lead + (m,), bool).reshape(B, m))
+        if np.any(pr & ~(np.isfinite(rad) & (rad >= 0))):
+            raise ValueError("obstacles.radius must be finite and >= 0 for every present obstacle")
+        good = pr & seen
+        # A present obstacle whose pose went missing stays where it was last seen (obstacles
+        # are static or slow); one never seen cannot be avoided: reported to every drone.
+        self._obstacles[:, :m] = np.where(good[..., None], op, self._obstacles[:, :m])
+        self._known[:, :m] |= good
+        use = pr & self._known[:, :m]
         pos = np.zeros((B, M, 2))
         vel = np.zeros((B, M, 2))
         radius = np.zeros((B, M))
         present = np.zeros((B, M), bool)
-        lost = np.zeros((B, self.n), bool)
-        if obstacles is not None:
-            op = np.asarray(obstacles.pos, np.float64)
-            m = op.shape[-2] if op.ndim >= 2 else -1
-            if op.shape != self._lead + (m, 2) or m < 0:
-                raise ValueError(f"obstacles.pos has shape {op.shape}: allowed shape is {self._lead + (M, 2)} "
-                                 f"(at most {M} cylinders)")
-            if m > M:
-                raise ValueError(f"{m} obstacles but the policy observes at most {M}: flying blind to the others "
-                                 "is unsafe; export a policy trained with more cylinders or remove some")
-            op = op.reshape(B, m, 2)
-            rad = _shaped(obstacles.radius, self._lead + (m,), np.float64).reshape(B, m)
-            ov = (np.zeros((B, m, 2)) if obstacles.vel is None
-                  else _shaped(obstacles.vel, self._lead + (m, 2), np.float64).reshape(B, m, 2))
-            pr = (np.ones((B, m), bool) if obstacles.present is None
-                  else _shaped(obstacles.present, self._lead + (m,), bool).reshape(B, m))
-            if np.any(pr & ~(np.isfinite(rad) & (rad >= 0))):
-                raise ValueError("obstacles.radius must be finite and >= 0 for every present obstacle")
-            good = pr & np.all(np.isfinite(op), -1)
-            # A present obstacle whose pose went missing stays where it was last seen (obstacles
-            # are static or slow); one never seen cannot be avoided: reported to every drone.
-            self._obstacles[:, :m] = np.where(good[..., None], op, self._obstacles[:, :m])
-            self._known[:, :m] |= good
-            use = pr & self._known[:, :m]
-            pos[:, :m] = np.where(use[..., None], self._obstacles[:, :m], 0.0)
+        pos[:, :m] = np.where(use[..., None], self._obstacles[:, :m], 0.0)
+        if ov is not None:
             vel[:, :m] = np.where(good[..., None] & np.isfinite(ov), ov, 0.0)
-            radius[:, :m] = np.where(use, rad, 0.0)
-            present[:, :m] = use
-            lost = np.repeat(np.any(pr & ~good, -1)[:, None], self.n, 1)
+        radius[:, :m] = np.where(use, rad, 0.0)
+        present[:, :m] = use
+        lost = np.repeat(np.any(pr & ~good, -1)[:, None], self.n, 1)
         return pos, vel, radius, present, lost
 
 
@@ -300,6 +337,11 @@ def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.n
                                float(sf["margin"]), float(sf["gate_half_opening"]), float(sf["gate_bar"]),
                                rho=float(sf["rho"]), max_iter=int(sf["max_iter"]), tol=float(sf["tol"]),
                                floor_z=float(sf["floor_z"]), neighbour_share=float(sf["neighbour_share"]))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
 
 
 def _shaped(x, shape: tuple[int, ...], dtype) -> np.ndarray:
@@ -323,8 +365,8 @@ def run_policy(bundle: Bundle, obs: np.ndarray) -> PolicyOutput:
     nobs = policy.normalize(w, obs)
     cmd = policy.actor_command(w, nobs, bundle.max_speed)
     if sf.get("gain_source") == "attention":
-        gain = policy.cbf_params(w, bundle.layout, nobs, obs, gain_min=float(sf["gain_min"]),
-                                 gain_max=float(sf["gain_max"]), penalty_max=float(sf["penalty_max"]))[1]
+        gain = policy.cbf_gain(w, bundle.layout, nobs, obs, gain_min=float(sf["gain_min"]),
+                               gain_max=float(sf["gain_max"]))
     else:
         gain = np.full(obs.shape[:-1], float(sf["fixed_gain"]))
     if not sf["enabled"]:

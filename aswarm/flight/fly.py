@@ -349,7 +349,7 @@ def run(args: argparse.Namespace, out: Callable[[str], None] = print) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m aswarm.flight.fly", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="aswarm fly", description=__doc__.split("\n\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     try:
