@@ -7,6 +7,8 @@ Each axis varies one quantity from the `obstacles` scenario (4 drones, 8 cylinde
 - worlds 1 -> 4096: throughput should grow until the cores are busy, then flatten;
 - drones 2 -> 16: every drone observes all n - 1 others and the collision checks are pairwise, so the cost
   of a world's step is expected to grow faster than linearly in n (the fit below says how much);
+- drones_k3, the same with each drone observing its 3 nearest neighbours only (``max_neighbours=3``): the
+  observation, attention and filter rows per drone stay fixed, so only the pairwise distances grow as n^2;
 - obstacles 1 -> 32: each drone attends over M cylinders: linear in M expected.
 The cost growth is the log-log slope of seconds per world-step (env) and per env-step (training)
 against the varied quantity over the upper half of its range: 1 is linear, 2 quadratic.
@@ -67,13 +69,14 @@ def growth(xs: list[int], per_step_s: list[float]) -> float:
 
 
 def study(args, log=print) -> dict:
-    axes = {"worlds": args.worlds, "drones": args.drones, "obstacles": args.obstacles}
+    axes = {"worlds": args.worlds, "drones": args.drones, "drones_k3": args.drones, "obstacles": args.obstacles}
     out: dict = {"scenario": SCENARIO, "base_worlds": args.base_worlds, "steps": args.steps, "axes": {}}
     for axis, values in axes.items():
         rows = []
         for v in values:
             worlds = v if axis == "worlds" else args.base_worlds
-            env = {"num_agents": v} if axis == "drones" else {"num_obstacles": v} if axis == "obstacles" else {}
+            env = ({"num_agents": v} if axis == "drones" else {"num_agents": v, "max_neighbours": 3}
+                   if axis == "drones_k3" else {"num_obstacles": v} if axis == "obstacles" else {})
             t0 = time.perf_counter()
             row = {"value": v, "worlds": worlds, **env_point(worlds, args.steps, **env)}
             if args.train:
@@ -114,7 +117,7 @@ def plot(res: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    fig, axes = plt.subplots(1, len(res["axes"]), figsize=(5 * len(res["axes"]), 4.5))
     for ax, (axis, entry) in zip(axes, res["axes"].items()):
         xs = [r["value"] for r in entry["rows"]]
         ax.loglog(xs, [r["env_steps_per_s"] for r in entry["rows"]], "o-", label="env-steps/s (random actions)")

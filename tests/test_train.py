@@ -5,6 +5,7 @@ import json
 
 import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -188,12 +189,14 @@ def test_correction_penalty_charges_the_filters_correction_in_the_training_rewar
     from aswarm.agents.train import make_train
 
     # A low fixed gain makes the floor barrier slow every random descent faster than 0.25 m/s.
-    base = dict(method="fixed_cbf", fixed_gain=0.3, scenario="obstacles", num_envs=16, rollout_steps=8,
+    base = dict(method="fixed_cbf", fixed_gain=0.3, scenario="hover", num_envs=16, rollout_steps=8,
                 minibatches=2, total_steps=16 * 8)
+    # The penalty is a value-only hyperparameter: one compiled trainer serves both values.
+    _, init, update_chunk, _ = make_train(TrainConfig(**base), sweep_fields=("correction_penalty",))
+    init, chunk = jax.jit(init), jax.jit(update_chunk, static_argnums=1)
     metrics = {}
     for c in (0.0, 5.0):
-        _, init, update_chunk, _ = make_train(TrainConfig(correction_penalty=c, **base))
-        _, m = jax.jit(update_chunk, static_argnums=1)(jax.jit(init)(jax.random.PRNGKey(0)), 1)
+        _, m = chunk(init(jax.random.PRNGKey(0), {"correction_penalty": jnp.float32(c)}), 1)
         metrics[c] = {k: float(v[0]) for k, v in m.items()}
     m0, m5 = metrics[0.0], metrics[5.0]
     # The first rollout is the same (same params and keys): only the reward the learner sees differs.
@@ -207,8 +210,8 @@ def test_correction_penalty_charges_the_filters_correction_in_the_training_rewar
 def test_policy_with_k_nearest_neighbours_flies_other_swarm_sizes(tmp_path):
     from aswarm.agents import evaluate
 
-    cfg = TrainConfig(scenario="obstacles", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
-                      total_steps=16 * 8, env_overrides=(("max_neighbours", 2),))
+    cfg = TrainConfig(scenario="hover", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
+                      total_steps=16 * 8, env_overrides=(("max_neighbours", 2), ("num_agents", 2)))
     run = runner.train(cfg, tmp_path / "k2", progress=False)
     for n in (1, 6):  # fewer drones than K (absent rows) and more (the 2 nearest)
         out = evaluate.evaluate_checkpoint(run, episodes=4, env_overrides=[f"num_agents={n}"])

@@ -58,9 +58,10 @@ class TrainConfig:
     fixed_gain: float = 1.5  # fixed_cbf
     filter_margin: float = 0.1  # m, kept on top of the collision distance by the filter
     # Training reward per second per m/s of the filter's correction ||u_safe - u_nom|| (methods with the
-    # filter): without it the policy never paid for commanding into the filter, and its mean command
-    # deadlocked in pockets between cylinders that exploration noise had shaken it out of in training.
-    correction_penalty: float = 0.0
+    # filter), so the policy learns to command what the filter lets through. Measured (README): filter
+    # intervention 58 -> 27 % of drone-steps on `obstacles` and 71 -> 66 % on the race, success 99.6 -> 99.9 %
+    # and 99.9 % on both.
+    correction_penalty: float = 2.0
     # Devices the worlds are split over (data-parallel, gradients averaged): 0 takes as many of the visible
     # devices as divide num_envs, and the run folder records the number used, so a resume lays itself out
     # the same way. On a CPU each core is a device (sharding.use_cpu_cores): 2 cores trained the race at
