@@ -154,3 +154,12 @@ def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
         x, y = np.asarray(x), np.asarray(y)
         assert np.linalg.norm(x - y) <= 1e-3 * np.linalg.norm(x) + 1e-6
         np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3)
+
+
+def test_training_mesh_errors_name_the_bad_device_count():
+    from aswarm.agents import sharding
+
+    n = len(jax.local_devices())
+    assert sharding.training_mesh(16).devices.size == max(k for k in range(1, n + 1) if 16 % k == 0)
+    with pytest.raises(ValueError, match=rf"invalid devices={n + 1}: this process has {n} \(cpu\); allowed: 0 to {n}"):
+        sharding.training_mesh(16, n + 1)

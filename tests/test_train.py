@@ -151,6 +151,9 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
     (dict(num_envs=0), r"invalid num_envs=0: must be > 0"),
     (dict(actor_lr=float("nan")), r"invalid actor_lr=nan: must be a finite number"),
     (dict(minibatches=7), r"invalid minibatches=7: must divide"),
+    (dict(target_tau=1.5), r"invalid target_tau=1.5: must be in \[0, 1\]"),
+    (dict(correction_penalty=-1.0), r"invalid correction_penalty=-1.0: must be >= 0"),
+    (dict(devices=-1), r"invalid devices=-1: must be >= 0"),
 ])
 def test_bad_train_config_is_a_clear_error(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -218,3 +221,17 @@ def test_policy_with_k_nearest_neighbours_flies_other_swarm_sizes(tmp_path):
         assert out["num_agents"] == n and out["episodes"] == 4 and 0.0 <= out["drone_success_rate"] <= 1.0
     with pytest.raises(ValueError, match="observation layouts differ"):
         evaluate.evaluate_checkpoint(run, episodes=4, env_overrides=["num_agents=6", "max_neighbours=0"])
+
+
+def test_target_critics_follow_the_critics_by_soft_updates():
+    from aswarm.agents.train import make_train
+
+    _, init, update_chunk, _ = make_train(TrainConfig(method="mappo", target_tau=0.25, **SMALL))
+    ts = jax.jit(init)(jax.random.PRNGKey(0))
+    chex.assert_trees_all_equal(ts.target, {k: ts.params[k] for k in ("critic", "cost_critic")})
+    ts1, _ = jax.jit(update_chunk, static_argnums=1)(ts, 1)
+    want = jax.tree.map(lambda t, p: 0.25 * p + 0.75 * t, ts.target, {k: ts1.params[k] for k in ts.target})
+    chex.assert_trees_all_close(ts1.target, want, rtol=1e-6, atol=1e-7)
+    assert not np.allclose(ts1.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"],
+                           ts.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"])
+    assert make_train(TrainConfig(method="mappo", **SMALL))[1](jax.random.PRNGKey(0)).target == {}

@@ -39,6 +39,10 @@ class TrainConfig:
     value_coef: float = 0.5
     entropy_coef: float = 1e-3
     max_grad_norm: float = 0.5
+    # Target critics with soft updates: 0 bootstraps GAE from the critics being trained (PPO's usual way);
+    # tau > 0 from copies that follow them as target <- tau * critic + (1 - tau) * target after each update.
+    # Off by default: measured on the race, it did not help (README).
+    target_tau: float = 0.0
     cost_limit: float = 0.02  # allowed expected discounted cost-to-go per drone
     lagrange_init: float = 0.0  # mappo_lagrangian: initial multiplier
     # Networks.
@@ -79,6 +83,8 @@ class TrainConfig:
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"invalid {f.name}={v!r}: must be a finite number")
+        if not 0 <= self.target_tau <= 1:
+            raise ValueError(f"invalid target_tau={self.target_tau}: must be in [0, 1] (0: no target critics)")
         if self.correction_penalty < 0:
             raise ValueError(f"invalid correction_penalty={self.correction_penalty}: must be >= 0")
         if self.devices < 0:

@@ -51,6 +51,9 @@ class TrainState:
     # Swept value-only hyperparameters ({field: [] float32}, see hparams.py); empty for a plain run, so
     # plain checkpoints keep their layout.
     hparams: dict = struct.field(default_factory=dict)
+    # Target critics ({"critic", "cost_critic"}) when config.target_tau > 0; empty otherwise, so checkpoints
+    # without them keep their layout.
+    target: dict = struct.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -191,9 +194,10 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
             params["lagrange"] = jnp.asarray(values["lagrange_init"], jnp.float32)
         obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
         optimizer = make_optimizer(config, hparams.resolve(config, values))
+        target = {k: params[k] for k in ("critic", "cost_critic")} if config.target_tau > 0 else {}
         return TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
                           env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
-                          env_steps=jnp.zeros((), jnp.float32), hparams=values)
+                          env_steps=jnp.zeros((), jnp.float32), hparams=values, target=target)
 
     def rollout(ts: TrainState, key: jax.Array):
         h = hparams.resolve(config, ts.hparams)
@@ -262,8 +266,9 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         h = hparams.resolve(config, ts.hparams)
         optimizer = make_optimizer(config, h)
         env_state, tr = rollout(ts, k_roll)
-        v, vc = values(ts.params, ts.obs_norm, tr.obs)
-        nv, nvc = values(ts.params, ts.obs_norm, tr.final_obs)
+        critics = {**ts.params, **ts.target}  # the target critics, where there are any, bootstrap GAE
+        v, vc = values(critics, ts.obs_norm, tr.obs)
+        nv, nvc = values(critics, ts.obs_norm, tr.final_obs)
         adv, targets = losses.gae(tr.reward, v, nv, tr.done, tr.truncated, h["gamma"], h["gae_lambda"])
         cadv, ctargets = losses.gae(tr.cost, vc, nvc, tr.done, tr.truncated, h["gamma"], h["gae_lambda"])
         excess = jnp.mean(ctargets) - h["cost_limit"]
@@ -302,8 +307,10 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         metrics["safety/mean_correction"] = jnp.sum(tr.correction) / jnp.maximum(jnp.sum(tr.intervened), 1.0)
         metrics["safety/correction_penalty"] = jnp.mean(tr.penalty)
         metrics["train/cost_excess"] = excess
+        target = jax.tree.map(lambda t, p: config.target_tau * p + (1 - config.target_tau) * t, ts.target,
+                              {k: params[k] for k in ts.target})
         ts = ts.replace(params=params, opt_state=opt_state, obs_norm=obs_norm, env_state=env_state, key=key,
-                        update=ts.update + 1, env_steps=ts.env_steps + config.steps_per_update)
+                        update=ts.update + 1, env_steps=ts.env_steps + config.steps_per_update, target=target)
         return ts, metrics
 
     def update_chunk(ts: TrainState, num_updates: int):
