@@ -91,8 +91,8 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
               "gate_half_opening": ec.gate_half_opening, "gate_bar": ec.gate_bar,
               "floor_z": bc["floor_z"].default, "neighbour_share": bc["neighbour_share"].default,
               "rho": fv["rho"].default, "max_iter": fv["max_iter"].default, "tol": fv["tol"].default,
-              "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | gate frame 5 "
-                      "(gate rows where a gate is observed)"}
+              "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | walls 5 (x low, x high, "
+                      "y low, y high, ceiling) | gate frame 5 | previous gate 5 (gate rows where a gate is observed)"}
     return fb.make_manifest(
         scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
         env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},

@@ -22,6 +22,7 @@ OWN_FIELDS = (
     ("quat", 4, "body->world, [w, x, y, z]"),
     ("vel", 3, "m/s, world"),
     ("ang_vel", 3, "rad/s, body"),
+    ("wall_clearance", 5, "m: drone centre to the arena's walls at x low, x high, y low, y high, and its ceiling"),
 )
 CYL_FIELDS = (
     ("rel_xy", 2, "m, world: cylinder centre minus drone position"),

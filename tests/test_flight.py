@@ -178,7 +178,7 @@ def test_numpy_observation_equals_the_simulators(race):
                                             lay.cyl_phase[s.world], s.time)
     obs = observe.observe(s.pos.astype(float), s.quat, s.vel, s.ang_vel, lay.waypoints[s.world], normals[s.world],
                           s.target, ~s.finished, cyl_pos, cyl_vel, lay.cyl_radius[s.world], lay.cyl_present[s.world],
-                          race.env.config.cf.collision_radius)
+                          race.env.config.cf.collision_radius, race.env.config.arena_low, race.env.config.arena_high)
     assert obs.shape == s.obs.shape and s.obs.shape[1:] == (n, race.env.observation_size)
     assert s.target.max() >= 1, "no drone passed a gate: the gate fields were not exercised"
     np.testing.assert_allclose(obs, s.obs, rtol=0, atol=2e-5)
@@ -203,7 +203,8 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
     normals = np.broadcast_to(observe.gate_normals(lay.gate_yaw)[None], lay.waypoints.shape)
     got = observe.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
                           lay.cyl_center, np.zeros_like(lay.cyl_center), lay.cyl_radius, lay.cyl_present,
-                          env.config.cf.collision_radius, max_neighbours=k)
+                          env.config.cf.collision_radius, env.config.arena_low, env.config.arena_high,
+                          max_neighbours=k)
     assert got.shape == (n, env.observation_size)
     np.testing.assert_allclose(got, np.asarray(want), rtol=0, atol=2e-5)
     nbr = env.obs_layout.split(got)[2]  # [n, k, 7]: nearest first, then absent rows

@@ -106,6 +106,27 @@ def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_fil
         assert bool(s.tracker.collided[0])
 
 
+@pytest.mark.parametrize("use_filter", [True, False])
+@pytest.mark.parametrize("direction", [(0.0, 1.5, 0.0), (-1.5, 0.0, 0.0), (0.0, 0.0, 1.5)])
+def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direction, use_filter):
+    env = envs.make("obstacles", num_agents=1, num_obstacles=0, layout_jitter=0.0)
+    c = env.config
+    s = env.reset(jax.random.PRNGKey(0))
+    d = np.asarray(direction) / 1.5
+    # 1.2 m from the wall (or the ceiling) the command points at.
+    centre = (np.asarray(c.arena_low) + np.asarray(c.arena_high)) / 2
+    start = np.where(d > 0, np.asarray(c.arena_high) - 1.2, np.where(d < 0, np.asarray(c.arena_low) + 1.2, centre))
+    start[2] = start[2] if d[2] else 1.0
+    s = _place(env, s, start)
+    s = _run(env, s, jnp.asarray([direction]), use_filter)
+    wall = env.obs_layout.split(s.obs)[0][0, env.obs_layout.own_slices["wall_clearance"]]
+    if use_filter:
+        assert not bool(s.tracker.collided[0])
+        assert float(wall.min()) < c.cf.collision_radius + MARGIN + 0.05  # it got there and stopped
+    else:
+        assert int(s.tracker.collision_kind[0]) == col.BOUNDS
+
+
 def test_two_drones_flying_head_on_keep_apart_with_the_filter():
     env = envs.make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))

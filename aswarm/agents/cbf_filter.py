@@ -115,6 +115,19 @@ def floor_constraint(pos: jax.Array, gamma: jax.Array, *, z_min: float) -> Barri
     return BarrierConstraints(A, -gamma * h, jnp.ones(1, bool), h)
 
 
+# Inward normals of the arena's walls, in the order of the observation's wall_clearance field.
+WALL_NORMALS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+
+
+def wall_constraints(clearance: jax.Array, gamma: jax.Array, *, drone_radius: float,
+                     margin: float = 0.0) -> BarrierConstraints:
+    """Rows for the arena's 4 side walls and its ceiling: ``clearance`` [5] is the drone centre's distance to
+    each (x low, x high, y low, y high, ceiling), h = clearance − (r_d + margin), ∇h the inward normal."""
+    h = clearance - (drone_radius + margin)
+    A = jnp.asarray(WALL_NORMALS, clearance.dtype)
+    return BarrierConstraints(A, -gamma * h, jnp.ones(h.shape, bool), h)
+
+
 def gate_constraints(pos: jax.Array, gate_center: jax.Array, gate_normal: jax.Array, present: jax.Array,
                      gamma: jax.Array, *, half_opening: float, bar: float, drone_radius: float,
                      margin: float = 0.0) -> BarrierConstraints:
@@ -391,15 +404,17 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     gate's centre and direction), so the flight side can run the very same filter from its own
     observations. Positions are taken in a frame centred on the drone's horizontal position, with
     z the altitude above the floor. ``gain`` [..., n] is one class-K gain per drone, applied to all
-    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | current gate 5 | previous gate 5]``;
-    the gate rows are present when ``gate_bar > 0`` and the observation has that gate (non-zero
-    direction). The gate passed last is kept: right after its plane a drone turning towards the next
-    gate can clip its frame from behind.
+    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous
+    gate 5]``; the gate rows are present when ``gate_bar > 0`` and the observation has that gate
+    (non-zero direction). The gate passed last is kept: right after its plane a drone turning towards
+    the next gate can clip its frame from behind. The walls keep the drone centre inside the arena:
+    without them, swarms of 8 and 16 drones pushed their outer drones out of it (README).
     """
     own, cyl, nbr = layout.split(obs)
     f = layout.own_slices
     alt = own[..., f["altitude"]]
     vel = own[..., f["vel"]]
+    walls = own[..., f["wall_clearance"]]
     zero = jnp.zeros_like(alt)
     pos = jnp.concatenate([zero, zero, alt], -1)
     gate_center = pos - own[..., f["target_rel"]]
@@ -415,17 +430,18 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     nbr_vel = nbr[..., 3:6] + vel[..., None, :]
     nbr_present = nbr[..., 6] > 0.5
 
-    def one(p, v, cc, cr, cv, cp, nq, nv, npres, gc, gn, gp, pc, pn, pp, g, u):
+    def one(p, v, cc, cr, cv, cp, nq, nv, npres, w, gc, gn, gp, pc, pn, pp, g, u):
         con = barrier_constraints(p, v, cc, cr, cv, cp, nq, nv, npres, g, drone_radius=drone_radius,
                                   margin=margin)
+        wall = wall_constraints(w, g, drone_radius=drone_radius, margin=margin)
         gates = [gate_constraints(p, c, nrm, present, g, half_opening=gate_half_opening, bar=gate_bar,
                                   drone_radius=drone_radius, margin=margin)
                  for c, nrm, present in ((gc, gn, gp), (pc, pn, pp))]
-        rows = [jnp.concatenate(x, 0) for x in zip(con, *gates)]
+        rows = [jnp.concatenate(x, 0) for x in zip(con, wall, *gates)]
         return filter_velocity(u, rows[0], rows[1], rows[2], u_max, max_iter=max_iter)
 
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
-    return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present,
+    return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present, walls,
               gate_center, gate_normal, gate_present, prev_center, prev_normal, prev_present, gain, cmd)

@@ -294,8 +294,11 @@ class SwarmEnv:
             normal = prev_rel = prev_normal = jnp.zeros((n, 3))
         to_target = target - drones.pos
         direction = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), MIN_TARGET_DIST)
+        low, high = jnp.asarray(cfg.arena_low), jnp.asarray(cfg.arena_high)
+        walls = jnp.stack([drones.pos[:, 0] - low[0], high[0] - drones.pos[:, 0], drones.pos[:, 1] - low[1],
+                           high[1] - drones.pos[:, 1], high[2] - drones.pos[:, 2]], -1)
         own = jnp.concatenate([drones.pos - target, normal, drones.pos - nxt, direction, prev_rel, prev_normal,
-                               drones.pos[:, 2:], drones.quat, drones.vel, drones.ang_vel], -1)
+                               drones.pos[:, 2:], drones.quat, drones.vel, drones.ang_vel, walls], -1)
 
         cyl_pos, cyl_vel = cylinders_at(layout, t)
         rel = cyl_pos[None] - drones.pos[:, None, :2]  # [n, M, 2]

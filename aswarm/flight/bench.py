@@ -102,7 +102,8 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
         vel, ang = estimator.estimate(est)
         c1 = time.perf_counter()
         obs = observe(pos, quat, vel, ang, wp, normals, np.zeros(n, np.int64), np.ones(n, bool), cyl,
-                      np.zeros_like(cyl), np.full(m, 0.15), np.ones(m, bool), 0.06)
+                      np.zeros_like(cyl), np.full(m, 0.15), np.ones(m, bool), 0.06, b.env["arena_low"],
+                      b.env["arena_high"])
         c2 = time.perf_counter()
         nobs = policy.normalize(b.weights, obs)
         cmd = policy.actor_command(b.weights, nobs, 2.0)

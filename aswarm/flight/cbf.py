@@ -1,7 +1,7 @@
 """The CBF safety filter in numpy: the same barriers and the same QP as ``aswarm.agents.cbf_filter``.
 
 Barriers (one row ``a_j · u ≥ b_j`` per hazard, see the JAX module for their derivation), rows laid
-out ``[cylinders M | neighbours K | floor 1 | gate frame 5 | previous gate 5]``, and the QP
+out ``[cylinders M | neighbours K | floor 1 | walls 5 | gate frame 5 | previous gate 5]``, and the QP
 
     min_{u, s}  ||u − u_nom||² + ρ s²
     s.t.        â_j · u + s ≥ b̂_j   (present rows, normalised to ||â_j|| = 1)
@@ -526,17 +526,25 @@ def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
 
 # ------------------------------------------------------------------ from observations
 @functools.lru_cache(maxsize=32)
-def _obs_columns(layout: ObsLayout) -> tuple[slice, slice, np.ndarray]:
-    """(altitude, velocity, [2, 6] columns of the current and the previous gate's (rel, normal)) in an own row."""
+def _obs_columns(layout: ObsLayout) -> tuple[slice, slice, slice, np.ndarray]:
+    """(altitude, velocity, wall clearances, [2, 6] columns of the current and the previous gate's (rel, normal))
+    in an own row."""
     f = layout.own_slices
     gates = np.array([np.r_[f["target_rel"], f["target_normal"]], np.r_[f["prev_gate_rel"], f["prev_gate_normal"]]])
-    return f["altitude"], f["vel"], gates
+    return f["altitude"], f["vel"], f["wall_clearance"], gates
+
+
+# Rows after the point hazards: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
+_FIXED_ROWS = 1 + 5 + 10
+# Inward normals of the walls, in the order of the observation's wall_clearance (cbf_filter.WALL_NORMALS).
+WALL_NORMALS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+WALL_NORMALS.setflags(write=False)
 
 
 @functools.lru_cache(maxsize=32)
 def _shares(M: int, K: int, share: float) -> np.ndarray:
     """The share of a gap each drone closes, per row of filter_from_obs: ``share`` of a neighbour's, else all."""
-    out = np.concatenate([np.ones(M), np.full(K, share), np.ones(11)])
+    out = np.concatenate([np.ones(M), np.full(K, share), np.ones(_FIXED_ROWS)])
     out.setflags(write=False)
     return out
 
@@ -557,17 +565,18 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     drone (its unit normal n = d / ||d||), a velocity of reference v, the share s of the gap this
     drone closes and a barrier value h, giving n · u ≥ n · v − s γ h. So all rows are built in one
     pass over arrays of all rows (numpy's cost is per operation, not per number, at these sizes):
-    a cylinder or neighbour is a point hazard, a gate bar's offset is to its closest point, and the
-    floor is the row with d = (0, 0, 1), v = 0 and h = altitude − clearance.
+    a cylinder or neighbour is a point hazard, a gate bar's offset is to its closest point, the
+    floor is the row with d = (0, 0, 1), v = 0 and h = altitude − clearance, and a wall the row with d
+    its inward normal, v = 0 and h = the observed wall clearance − clearance.
     """
     lead = obs.shape[:-1]
     P = math.prod(lead)
     M, K = layout.num_cylinders, layout.num_neighbours
     H = M + K  # point hazards
-    m = H + 11  # rows [cylinders M | neighbours K | floor 1 | gate 5 | previous gate 5], then the box
+    m = H + _FIXED_ROWS  # rows [cylinders M | neighbours K | floor 1 | walls 5 | gate 5 | previous gate 5], box
     obs = np.asarray(obs, np.float64).reshape(P, -1)
     own, cyl, nbr = layout.split(obs)
-    alt_col, vel_col, gate_cols = _obs_columns(layout)
+    alt_col, vel_col, wall_col, gate_cols = _obs_columns(layout)
     alt = own[:, alt_col]  # [P, 1]
     gamma = np.asarray(gain, np.float64).reshape(P, 1)
     u_max = (float(u_max),) * 3
@@ -577,10 +586,11 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     np.negative(cyl[:, :, 0:2], out=d[:, :M, :2])  # the drone sits at (0, 0, alt)
     np.negative(nbr[:, :, 0:3], out=d[:, M:H])
     d[:, H, 2] = 1.0
+    d[:, H + 1:H + 6] = WALL_NORMALS
     # The current gate's frame and the one passed last: 4 edges and the post each, as round bars.
     gates = own[:, gate_cols]  # [P, 2, 6]
-    valid[:, H + 1:m] = _gate_offsets(gates[:, :, :3], gates[:, :, 3:], alt[:, 0], gate_half_opening, gate_bar,
-                                      d[:, H + 1:m].reshape(P, 2, 5, 3)).repeat(5, 1)
+    valid[:, H + 6:m] = _gate_offsets(gates[:, :, :3], gates[:, :, 3:], alt[:, 0], gate_half_opening, gate_bar,
+                                      d[:, H + 6:m].reshape(P, 2, 5, 3)).repeat(5, 1)
     ref = np.zeros((P, m, 3))
     ref[:, :M, :2] = cyl[:, :, 3:5]
     ref[:, M:H] = own[:, None, vel_col] + neighbour_share * nbr[:, :, 3:6]
@@ -594,13 +604,14 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     np.subtract(cyl[:, :, 2], margin, out=hv[:, :M])
     np.subtract(dist[:, M:H], 2.0 * drone_radius + margin, out=hv[:, M:H])
     np.subtract(alt, floor_z + drone_radius + margin, out=hv[:, H:H + 1])
-    np.subtract(dist[:, H + 1:], gate_bar / 2 + drone_radius + margin, out=hv[:, H + 1:])
+    np.subtract(own[:, wall_col], drone_radius + margin, out=hv[:, H + 1:H + 6])
+    np.subtract(dist[:, H + 6:], gate_bar / 2 + drone_radius + margin, out=hv[:, H + 6:])
     sgh = _shares(M, K, neighbour_share) * gamma
     sgh *= hv
     np.subtract((n * ref).sum(-1), sgh, out=h[:, :m])
     np.greater(cyl[:, :, 5], 0.5, out=valid[:, :M])
     np.greater(nbr[:, :, 6], 0.5, out=valid[:, M:H])
-    valid[:, H] = True
+    valid[:, H:H + 6] = True
     valid[:, :m] &= ok  # a row with no direction is ignored
 
     res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol)

@@ -110,6 +110,8 @@ class FlightController:
         self.estimation = estimation
         env = bundle.env
         self.max_speed = bundle.max_speed
+        # The arena as the policy was trained in it: its observation measures the walls of this box.
+        self._arena_low, self._arena_high = np.array(env["arena_low"], float), np.array(env["arena_high"], float)
         self.low = np.array(env["arena_low"], float) + safety.geofence_margin
         self.high = np.array(env["arena_high"], float) - safety.geofence_margin
         self.low[2] = -np.inf  # the floor is a barrier of the filter, not a fence (drones start on it)
@@ -239,7 +241,8 @@ class FlightController:
         vel, ang = estimator.estimate(self._est, self.estimation)
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
-                      cyl_present, self._collision_radius, self.bundle.max_neighbours)
+                      cyl_present, self._collision_radius, self._arena_low, self._arena_high,
+                      self.bundle.max_neighbours)
         pol = run_policy(self.bundle, obs)
 
         u = pol.u

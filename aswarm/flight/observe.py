@@ -57,7 +57,7 @@ def _picks(K: int) -> np.ndarray:
 
 def observe(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, ang_vel: np.ndarray, waypoints: np.ndarray,
             normals: np.ndarray, target: np.ndarray, flying: np.ndarray, cyl_pos: np.ndarray, cyl_vel: np.ndarray,
-            cyl_radius: np.ndarray, cyl_present: np.ndarray, collision_radius: float,
+            cyl_radius: np.ndarray, cyl_present: np.ndarray, collision_radius: float, arena_low, arena_high,
             max_neighbours: int = 0) -> np.ndarray:
     """Every drone's observation [..., n, D].
 
@@ -66,6 +66,7 @@ def observe(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, ang_vel: np.ndar
     normals [..., n, K, 3] the gates' directions of passage (0 for goals); target [..., n] int index of
     the current waypoint (may be K when finished); flying [..., n] bool (a drone that finished or was
     lost is not a neighbour); cyl_pos, cyl_vel [..., M, 2]; cyl_radius [..., M]; cyl_present [..., M] bool.
+    arena_low, arena_high [3]: the arena box (m), whose walls and ceiling the row measures the drone against.
     ``max_neighbours`` as the env config's: 0 gives every other drone in index order, K the K nearest
     flying ones, nearest first, padded with absent rows.
 
@@ -108,6 +109,11 @@ def observe(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, ang_vel: np.ndar
     out[:, _OWN["quat"]] = quat.reshape(P, 4)
     out[:, _OWN["vel"]] = vel.reshape(P, 3)
     out[:, _OWN["ang_vel"]] = ang_vel.reshape(P, 3)
+    walls = out[:, _OWN["wall_clearance"]]
+    low, high = np.asarray(arena_low, np.float64), np.asarray(arena_high, np.float64)
+    np.subtract(p[:, 0:2], low[:2], out=walls[:, 0:4:2])
+    np.subtract(high[:2], p[:, 0:2], out=walls[:, 1:4:2])
+    np.subtract(high[2], p[:, 2], out=walls[:, 4])
 
     # Cylinders [B, n, M, 6], written in place through a view of the output.
     rows3 = out.reshape(B, n, -1)
