@@ -14,6 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from curves import assert_same_curve, assert_same_params
 
 from aswarm import sweep
 from aswarm.agents import evaluate
@@ -66,6 +67,11 @@ runner.train(None, f"{out}/part", resume=True, progress=False)
 """
 
 
+# Other devices sum in another order: curves agree to 2e-3 of their scale after 3-4 updates (seen in CI:
+# explained variance 3.5e-4 apart on a curve reaching 1.1, cost excess 5e-5 apart on one reaching 0.17).
+SCALE_RTOL = 2e-3
+
+
 def _env(devices: int) -> dict:
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
                PYTHONPATH=str(ROOT))
@@ -76,20 +82,14 @@ def _env(devices: int) -> dict:
 
 
 def _assert_same(a: Path, b: Path) -> None:
-    """Metrics of every update and final params of every trial agree to float tolerance.
-
-    Adam divides by the root of the second moment, so entries whose gradient is near zero amplify the
-    round-off of a different summation order: params get an absolute tolerance of 1e-4 (seen: 1.2e-5).
-    """
+    """Metrics of every update and final params of every trial agree to float tolerance."""
     for t in TRIALS:
         rows_a, rows_b = sweep.read_rows(a / "trials" / t), sweep.read_rows(b / "trials" / t)
         assert len(rows_a) == len(rows_b) == 4
         for name in rows_a[0]:
-            np.testing.assert_allclose([r[name] for r in rows_b], [r[name] for r in rows_a], rtol=1e-4, atol=1e-5,
-                                       err_msg=f"{b.name}/{t} {name}")
+            assert_same_curve([r[name] for r in rows_b], [r[name] for r in rows_a], SCALE_RTOL, f"{b.name}/{t} {name}")
         pa, pb = evaluate.load(a / "trials" / t)[1]["params"], evaluate.load(b / "trials" / t)[1]["params"]
-        for x, y in zip(jax.tree.leaves(pa), jax.tree.leaves(pb)):
-            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-4, atol=1e-4)
+        assert_same_params(pb, pa, err_msg=f"{b.name}/{t}")
 
 
 @pytest.fixture(scope="module")
@@ -144,16 +144,17 @@ def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
     two, one, part = (runner.read_metrics(tmp_path / r) for r in ("two", "one", "part"))
     assert len(two) == len(one) == len(part) == 3
     for name in two[0]:
-        np.testing.assert_allclose([r[name] for r in two], [r[name] for r in one], rtol=1e-4, atol=1e-5, err_msg=name)
+        assert_same_curve([r[name] for r in two], [r[name] for r in one], SCALE_RTOL, name)
     assert part == two  # interrupted and resumed on 2 devices: the same numbers as uninterrupted
     # Params: per array, the difference is float round-off relative to the whole array (seen: 2e-4 at most). A few
-    # entries of the critics' input layer differ by up to 2e-4 on their own: inputs that barely vary get a tiny
-    # normalizer std, and Adam's step on a near-zero gradient amplifies the other summation order.
+    # entries of the critics' input layer differ more on their own (seen: 2e-4 on an EPYC, 3.4e-3 on a Xeon, 1 of
+    # 52,736): inputs that barely vary get a tiny normalizer std, and Adam's step on a near-zero gradient amplifies
+    # the other summation order.
     pa, pb = (evaluate.load(tmp_path / r)[1]["params"] for r in ("two", "one"))
     for x, y in zip(jax.tree.leaves(pa), jax.tree.leaves(pb)):
         x, y = np.asarray(x), np.asarray(y)
         assert np.linalg.norm(x - y) <= 1e-3 * np.linalg.norm(x) + 1e-6
-        np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3)
+        assert np.mean(np.abs(x - y) > 1e-3) <= 1e-3 and np.max(np.abs(x - y)) <= 1e-2
 
 
 def test_training_mesh_errors_name_the_bad_device_count():

@@ -6,6 +6,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from curves import assert_same_curve, assert_same_params
 
 from aswarm import cli, sweep
 from aswarm.agents import checkpoint, evaluate, hparams
@@ -81,17 +82,16 @@ def test_tiny_sweep_resumes_and_equals_trials_run_one_by_one(tmp_path):
             rows = sweep.read_rows(run)
             assert [r["update"] for r in rows] == [1, 2, 3, 4]
             for name, values in metrics.items():
-                # Explained variance, 1 - var(residual) / var(target), magnifies float noise where the
-                # target barely varies (seen: -6.222268 vs -6.222369, 1.6e-5 relative).
-                rtol = 1e-4 if name == "train/explained_variance" else 1e-5
-                np.testing.assert_allclose([r[name] for r in rows], np.asarray(values), rtol=rtol, atol=1e-5,
-                                           err_msg=f"{run.name} {name}")
+                # vmapped over trials, the same sums in another order (seen in CI: cost excess 1.3e-5 apart
+                # on a curve reaching 0.47). Explained variance, 1 - var(residual) / var(target), magnifies it
+                # where the target barely varies (seen: 3.5e-4 apart on a curve reaching 1.17).
+                rtol = 1e-3 if name == "train/explained_variance" else 2e-4
+                assert_same_curve([r[name] for r in rows], np.asarray(values), rtol, f"{run.name} {name}")
             # What `aswarm eval --checkpoint` reads: the trial's own config and policy.
             trained, restored = evaluate.load(run)
             assert trained.actor_lr == config.actor_lr and trained.seed == seed
             assert int(restored["update"]) == 4
-            for a, b in zip(jax.tree.leaves(restored["params"]), jax.tree.leaves(ts.params)):
-                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
+            assert_same_params(restored["params"], ts.params, err_msg=run.name)
 
     assert [e["rank"] for e in results["configs"]] == [1, 2]
     assert {e["label"] for e in results["configs"]} == set(spec.labels)

@@ -105,8 +105,8 @@ def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch
     cfg = TrainConfig(method="mappo", checkpoint_minutes=1e-6, **SMALL)
     real = runner.make_train
 
-    def poisoned(config):
-        agent, init, chunk, train = real(config)
+    def poisoned(config, **kw):
+        agent, init, chunk, train = real(config, **kw)
 
         def chunk_nan(ts, k):
             ts, m = chunk(ts, k)
