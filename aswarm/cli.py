@@ -18,11 +18,12 @@ def _positive_ints(text: str) -> list[int]:
 
 
 def cmd_scenarios(args: argparse.Namespace) -> int:
-    from aswarm.envs import scenarios
+    from aswarm.envs import registry, scenarios
+    from aswarm.envs.presets import SCENARIOS
 
     rows = []
-    for name, sc in scenarios.SCENARIOS.items():
-        cfg = scenarios.preset(name)
+    for name, sc in SCENARIOS.items():
+        cfg = registry.preset(name)
         geo = scenarios.geometry(cfg)
         moving = f"{cfg.min_moving}-{cfg.num_moving}" if cfg.num_moving else "0"
         task = f"{cfg.num_gates} gates in order" if sc.kind == "track" else "goal point"
@@ -38,15 +39,15 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from aswarm import bench
+    from aswarm.analysis import bench
 
     return bench.main_trainer(args) if args.trainer else bench.main(args)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from aswarm import config_args, envs
-    from aswarm.agents import runner
     from aswarm.agents.config import TrainConfig
+    from aswarm.training import runner
 
     if args.resume:
         run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet)
@@ -64,7 +65,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate
 
     out_dir = evaluate.report_dir(args.checkpoint, args.out)
     if out_dir.exists() and not out_dir.is_dir():
@@ -82,7 +83,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from aswarm import export
+    from aswarm.flight import export
 
     out = export.export(args.checkpoint, args.out, force=args.force)
     print(f"bundle: {out}  (policy.npz, manifest.json)")
@@ -93,7 +94,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_sitl(args: argparse.Namespace) -> int:
     import json
 
-    from aswarm import sitl
+    from aswarm.flight import sitl
 
     result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
                            noise=args.noise, latency=args.latency, env_overrides=args.env or [],
@@ -103,11 +104,11 @@ def cmd_sitl(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from aswarm.agents import sharding
+    from aswarm.training import sharding
 
     if args.coordinator is not None:  # several hosts: join before anything touches a device
         sharding.initialize(args.coordinator, args.num_processes, args.process_id)
-    from aswarm import sweep
+    from aswarm.training import sweep
 
     spec = sweep.load(args.file)  # a bad file fails here, before anything compiles
     if args.bench:
@@ -126,8 +127,7 @@ def _record_episode(args: argparse.Namespace, need_attention: bool = False):
     """(agent's env, recorded Episode) of episode ``--episode-index`` of ``--seed``, as ``aswarm eval`` draws it."""
     import jax
 
-    from aswarm import plots
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate, plots
 
     if args.episode_index < 0:
         raise ValueError(f"invalid --episode-index {args.episode_index}: must be >= 0")
@@ -143,7 +143,7 @@ def _record_episode(args: argparse.Namespace, need_attention: bool = False):
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from aswarm import plots
+    from aswarm.analysis import plots
 
     plots.check_output(args.out)
     _, ep = _record_episode(args, need_attention=args.attention)
@@ -156,7 +156,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from aswarm import render
+    from aswarm.analysis import render
 
     render.choose_output(args.out, True, True)  # bad options fail before anything compiles
     render.check_options(args.fps, args.width, args.height, args.camera)
@@ -295,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
         return fly.main(argv[1:])
     args = build_parser().parse_args(argv)
     if args.command in _TRAINING:
-        from aswarm.agents import sharding
+        from aswarm.training import sharding
 
         sharding.use_cpu_cores()
     try:

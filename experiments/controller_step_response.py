@@ -16,10 +16,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from aswarm.envs.controller import ControllerGains, velocity_controller  # noqa: E402
 from aswarm.envs.crazyflie import CrazyflieParams  # noqa: E402
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state  # noqa: E402
 from aswarm.envs.mjx_import import mjx  # noqa: E402
+from aswarm.envs.onboard_controller import ControllerGains, velocity_controller  # noqa: E402
 
 
 def step_response(cmd: np.ndarray, seconds: float = 2.0, sim_freq: int = 250):

@@ -61,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from aswarm import envs
-    from aswarm.agents import evaluate, mpc
+    from aswarm.analysis import evaluate
+    from aswarm.baselines import mpc
 
     rows = []
     t_start = time.perf_counter()

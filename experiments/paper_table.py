@@ -66,8 +66,10 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
     import jax
 
     from aswarm import envs
-    from aswarm.agents import evaluate, mpc, runner
     from aswarm.agents.config import TrainConfig
+    from aswarm.analysis import evaluate
+    from aswarm.baselines import mpc
+    from aswarm.training import runner
 
     env_overrides = tuple(QUICK_ENV[scenario]) if args.quick else ()
     t0 = time.perf_counter()
@@ -112,7 +114,7 @@ def _pct(r: dict | None, name: str) -> str:
 
 def table(results: list[dict], args: argparse.Namespace) -> tuple[str, str]:
     """(markdown, csv) of the results, one row per method and variant."""
-    from aswarm.agents.evaluate import wilson
+    from aswarm.analysis.evaluate import wilson
 
     keys = []
     for r in results:
@@ -154,7 +156,7 @@ def table(results: list[dict], args: argparse.Namespace) -> tuple[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from aswarm.agents import sharding
+    from aswarm.training import sharding
 
     sharding.use_cpu_cores()  # train as `aswarm train` does: the worlds split over the CPU cores
     results = []

@@ -43,7 +43,7 @@ def _ints(text: str) -> list[int]:
 
 
 def env_point(worlds: int, steps: int, **env) -> dict:
-    from aswarm import bench
+    from aswarm.analysis import bench
 
     row = bench.time_env(SCENARIO, worlds, steps, **{**BASE_ENV, **env})
     return {"env_steps_per_s": row.env_steps_per_s, "drone_steps_per_s": row.drone_steps_per_s,
@@ -51,8 +51,8 @@ def env_point(worlds: int, steps: int, **env) -> dict:
 
 
 def train_point(worlds: int, rollout_steps: int, updates: int, **env) -> dict:
-    from aswarm import bench
     from aswarm.agents.config import TrainConfig
+    from aswarm.analysis import bench
 
     cfg = TrainConfig(scenario=SCENARIO, num_envs=worlds, rollout_steps=rollout_steps,
                       minibatches=2 if worlds * rollout_steps % 2 == 0 else 1,
@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.tiny:
         args.worlds, args.drones, args.obstacles = [2, 4], [2, 3], [1, 2]
         args.base_worlds, args.steps, args.rollout_steps, args.updates = 4, 5, 4, 1
-    from aswarm.agents import sharding
+    from aswarm.training import sharding
 
     sharding.use_cpu_cores()  # training points are laid out as `aswarm train` lays them out
     args.out.mkdir(parents=True, exist_ok=True)

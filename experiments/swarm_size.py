@@ -62,9 +62,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes <= 0:
         p.error(f"invalid --episodes {args.episodes}: must be > 0")
 
-    from aswarm import bench
-    from aswarm.agents import checkpoint, evaluate
     from aswarm.agents.train import make_env
+    from aswarm.analysis import bench, evaluate
+    from aswarm.training import checkpoint
 
     config = checkpoint.load_config(evaluate.PRETRAINED if args.checkpoint == "pretrained" else Path(args.checkpoint))
     trained = make_env(config).config

@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from aswarm.envs.controller import ControllerGains, velocity_controller
 from aswarm.envs.crazyflie import CrazyflieParams
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
 from aswarm.envs.mjx_import import mjx
+from aswarm.envs.onboard_controller import ControllerGains, velocity_controller
 
 CF = CrazyflieParams()
 SIM = 250

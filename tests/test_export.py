@@ -13,11 +13,13 @@ import pytest
 from brax.training.acme import running_statistics
 from flax import struct
 
-from aswarm import cli, envs, export
-from aswarm.agents import checkpoint, evaluate, runner
+from aswarm import cli, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
+from aswarm.analysis import evaluate
 from aswarm.flight import bundle as fb
+from aswarm.flight import export
+from aswarm.training import checkpoint, runner
 
 
 @struct.dataclass

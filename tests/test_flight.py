@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 from brax.training.acme import running_statistics
 
-from aswarm import cli, envs, export, sitl
-from aswarm.agents import evaluate
+from aswarm import cli, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
+from aswarm.analysis import evaluate
 from aswarm.envs import swarm_env
-from aswarm.flight import bench, cbf, estimator, observe
+from aswarm.flight import bench, cbf, estimator, export, observe, sitl
 from aswarm.flight import bundle as fb
-from aswarm.flight import controller as fc
 from aswarm.flight import fly as ffly
+from aswarm.flight import runtime as fc
 
 B = 8  # worlds
 SEED = 10_000

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from aswarm import envs
-from aswarm.agents import evaluate
+from aswarm.analysis import evaluate
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import DroneState, set_drone_state
 

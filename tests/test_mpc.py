@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aswarm import envs
-from aswarm.agents.mpc import MPCConfig, frame_distance, make_mpc_policy, rollout_mpc
+from aswarm.baselines.mpc import MPCConfig, frame_distance, make_mpc_policy, rollout_mpc
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import drone_state
 

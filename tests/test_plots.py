@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from brax.training.acme import running_statistics
 
-from aswarm import cli, plots, render
-from aswarm.agents import checkpoint, runner
+from aswarm import cli
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
+from aswarm.analysis import plots, render
+from aswarm.training import checkpoint, runner
 
 # 50 policy steps with 2 drones and 3 cylinders: a third less to compile than the full race.
 SHORT = (("episode_seconds", 1.0), ("num_agents", 2), ("num_obstacles", 3))

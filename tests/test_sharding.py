@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from curves import assert_same_curve, assert_same_params
 
-from aswarm import sweep
-from aswarm.agents import evaluate
+from aswarm.analysis import evaluate
+from aswarm.training import sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_SWEEP = ROOT / "sweeps" / "ci_tiny.toml"
@@ -28,8 +28,8 @@ TRIALS = ("c00-s0", "c00-s1", "c01-s0", "c01-s1")
 DEVICES = """
 import sys
 import jax, numpy as np
-from aswarm import sweep
-from aswarm.agents import sharding
+from aswarm.training import sweep
+from aswarm.training import sharding
 spec, out = sweep.load(sys.argv[1]), sys.argv[2]
 devs = np.asarray(jax.devices(), dtype=object)
 assert devs.size == 2, devs
@@ -40,10 +40,10 @@ for name, grid in {"one": devs[:1].reshape(1, 1), "trials": devs.reshape(2, 1), 
 # Two processes on loopback, one CPU device each, every trial's worlds split across them.
 HOSTS = """
 import sys
-from aswarm.agents import sharding
+from aswarm.training import sharding
 sharding.initialize(sys.argv[3], 2, int(sys.argv[4]))
 import jax, numpy as np
-from aswarm import sweep
+from aswarm.training import sweep
 assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1
 mesh = jax.sharding.Mesh(np.asarray(jax.devices(), dtype=object).reshape(1, 2), sharding.AXES)
 sweep.run(sweep.load(sys.argv[1]), sys.argv[2], progress=False, mesh=mesh, log=print)
@@ -54,7 +54,7 @@ sweep.run(sweep.load(sys.argv[1]), sys.argv[2], progress=False, mesh=mesh, log=p
 TRAIN = """
 import sys
 from aswarm import cli
-from aswarm.agents import runner
+from aswarm.training import runner
 from aswarm.agents.config import TrainConfig
 out = sys.argv[1]
 small = dict(scenario="obstacles", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
@@ -134,7 +134,7 @@ def test_two_processes_on_loopback_train_together(two_devices, tmp_path):
 def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
     import json
 
-    from aswarm.agents import runner
+    from aswarm.training import runner
 
     proc = subprocess.run([sys.executable, "-c", TRAIN, str(tmp_path)], env=_env(2), cwd=ROOT, capture_output=True,
                           text=True, timeout=1200)
@@ -158,7 +158,7 @@ def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
 
 
 def test_training_mesh_errors_name_the_bad_device_count():
-    from aswarm.agents import sharding
+    from aswarm.training import sharding
 
     n = len(jax.local_devices())
     assert sharding.training_mesh(16).devices.size == max(k for k in range(1, n + 1) if 16 % k == 0)

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 from curves import assert_same_curve, assert_same_params
 
-from aswarm import cli, sweep
-from aswarm.agents import checkpoint, evaluate, hparams
+from aswarm import cli
+from aswarm.agents import hparams
 from aswarm.agents.train import make_train
+from aswarm.analysis import evaluate
+from aswarm.training import checkpoint, sweep
 
 CI_SWEEP = Path(__file__).resolve().parent.parent / "sweeps" / "ci_tiny.toml"
 HEAD = 'scenario = "hover"\ntotal_steps = 128\nseeds = [0, 1]\n'

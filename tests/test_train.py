@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from aswarm import envs
-from aswarm.agents import checkpoint, runner
 from aswarm.agents.config import TrainConfig
+from aswarm.training import checkpoint, runner
 
 SMALL = dict(scenario="hover", num_envs=32, rollout_steps=8, minibatches=2, epochs=2, updates_per_chunk=2,
              total_steps=32 * 8 * 4)
@@ -34,8 +34,8 @@ def test_hover_learns_from_scratch(tmp_path):
     # The deterministic policy on the same 64 unseen episodes, before (the run's initial parameters) and after.
     # (Training rows are no "before": the first episodes to end are the quick successes, and by the time the
     # failures time out the policy has already learnt.)
-    from aswarm.agents import evaluate
     from aswarm.agents.train import make_train
+    from aswarm.analysis import evaluate
 
     agent, init, _, _ = make_train(cfg)
     ts = jax.jit(init)(jax.random.PRNGKey(cfg.seed))
@@ -134,7 +134,7 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
     cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
     run = runner.train(cfg, tmp_path / "r", progress=False)
     # The policy-only copy (how the shipped pretrained policy is made) restores the same arrays.
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate
 
     small = checkpoint.copy_policy(run, tmp_path / "policy-only")
     assert not any(small.rglob("state"))
@@ -161,7 +161,7 @@ def test_bad_train_config_is_a_clear_error(bad, message):
 
 
 def test_eval_errors_are_clear(tmp_path):
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate
 
     with pytest.raises(checkpoint.CheckpointError, match="does not exist"):
         evaluate.evaluate_checkpoint(tmp_path / "missing")
@@ -211,7 +211,7 @@ def test_correction_penalty_charges_the_filters_correction_in_the_training_rewar
 
 
 def test_policy_with_k_nearest_neighbours_flies_other_swarm_sizes(tmp_path):
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate
 
     cfg = TrainConfig(scenario="hover", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
                       total_steps=16 * 8, env_overrides=(("max_neighbours", 2), ("num_agents", 2)))

@@ -5,8 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from aswarm.envs.controller import ControllerGains
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.onboard_controller import ControllerGains
+from aswarm.envs.presets import SCENARIOS
 
 REWARDS = ("shaped", "paper")
 FORMATIONS = ("column", "grid")
@@ -117,8 +118,6 @@ def _check_finite(prefix: str, obj) -> None:
 
 def validate(c: EnvConfig) -> None:
     """Raise ``ValueError`` naming the first bad field and what is allowed."""
-    from aswarm.envs.scenarios import SCENARIOS  # presets import this module
-
     if c.scenario not in SCENARIOS:
         _fail("scenario", c.scenario, f"allowed: {', '.join(SCENARIOS)}")
     _check_finite("", c)

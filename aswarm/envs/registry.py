@@ -2,8 +2,22 @@
 
 from __future__ import annotations
 
-from aswarm.envs.scenarios import SCENARIOS, preset
+import dataclasses
+
+from aswarm.envs.config import EnvConfig
+from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.swarm_env import SwarmEnv
+
+
+def preset(name: str, **overrides) -> EnvConfig:
+    """The scenario's :class:`EnvConfig` with ``overrides`` applied and validated."""
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}: allowed: {', '.join(SCENARIOS)}")
+    fields = {f.name for f in dataclasses.fields(EnvConfig)}
+    bad = sorted(set(overrides) - fields)
+    if bad:
+        raise ValueError(f"unknown env config field {bad[0]!r}: allowed: {', '.join(sorted(fields))}")
+    return EnvConfig(**{**SCENARIOS[name].preset, **overrides, "scenario": name})
 
 
 def make(name: str, **overrides) -> SwarmEnv:

@@ -17,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from aswarm.core.layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
 from aswarm.envs import collisions as col
 from aswarm.envs.config import EnvConfig
-from aswarm.envs.controller import velocity_controller
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
 from aswarm.envs.mjx_import import mjx
-from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at, geometry, sample_layout
-from aswarm.obs_layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+from aswarm.envs.onboard_controller import velocity_controller
+from aswarm.envs.presets import SCENARIOS
+from aswarm.envs.scenarios import Layout, cylinders_at, geometry, sample_layout
 
 
 def _horizontal(yaw: jax.Array) -> jax.Array:

@@ -20,7 +20,7 @@ episodes at once through the same code that flies.
 """
 
 from aswarm.flight.bundle import Bundle, BundleError, load_bundle
-from aswarm.flight.controller import Event, FlightController, Obstacles, SafetyConfig, StepResult
+from aswarm.flight.runtime import Event, FlightController, Obstacles, SafetyConfig, StepResult
 
 __all__ = ["Bundle", "BundleError", "load_bundle", "Event", "FlightController", "Obstacles", "SafetyConfig",
            "StepResult"]

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from aswarm.flight import controller as fc
 from aswarm.flight import estimator, policy
+from aswarm.flight import runtime as fc
 from aswarm.flight.bundle import Bundle, bundle_from, make_manifest
 from aswarm.flight.cbf import filter_from_obs
 from aswarm.flight.observe import ObsLayout, observe
@@ -151,8 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     body = table(args.drones, args.steps)
     print(head + "\n\n" + body)
     if args.out:
-        # Imported here: aswarm.bench imports JAX, which the flight side must not need.
-        from aswarm.bench import machine, write_section
+        # Imported here: aswarm.analysis.bench imports JAX, which the flight side must not need.
+        from aswarm.analysis.bench import machine, write_section
 
         text = "\n".join(["## Flight runtime (`make bench-flight`)", "",
                           f"Command: `python -m aswarm.flight.bench --drones {args.drones} --steps {args.steps}`  ",

@@ -1,6 +1,6 @@
 """Policy bundles: ``policy.npz`` (plain float32 arrays) and ``manifest.json``, written and checked here.
 
-``aswarm export`` (``aswarm/export.py``) fills a manifest from a checkpoint with :func:`make_manifest`
+``aswarm export`` (``aswarm/flight/export.py``) fills a manifest from a checkpoint with :func:`make_manifest`
 and writes it with :func:`write_bundle`; the flight side reads it with :func:`load_bundle`, which
 refuses anything it cannot run exactly: another format or version, a hash that does not match the
 arrays, missing, misshapen or non-finite arrays, or an observation layout other than the one

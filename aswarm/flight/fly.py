@@ -40,7 +40,7 @@ from typing import Protocol
 import numpy as np
 
 from aswarm.flight.bundle import Bundle, load_bundle
-from aswarm.flight.controller import FlightController, Obstacles, SafetyConfig
+from aswarm.flight.runtime import FlightController, Obstacles, SafetyConfig
 
 CSV_COLUMNS = ("t", "drone", "x", "y", "z", "qw", "qx", "qy", "qz")
 YAW_RATE_DEG_S = 0.0  # cflib's yaw rate unit is degrees per second

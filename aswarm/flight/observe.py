@@ -1,7 +1,7 @@
 """Observations in numpy, built exactly as ``aswarm.envs.swarm_env.SwarmEnv._observe`` builds them.
 
 Shapes: leading batch axes ``...`` (worlds), ``n`` drones, ``K`` waypoints, ``M`` cylinders.
-The field tables live in :mod:`aswarm.obs_layout` (free of JAX, shared with the simulator), and
+The field tables live in :mod:`aswarm.core.layout` (free of JAX, shared with the simulator), and
 :func:`aswarm.flight.bundle.load_bundle` checks a bundle's layout against them.
 """
 
@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from aswarm.obs_layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+from aswarm.core.layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
 
 
 @functools.lru_cache(maxsize=64)

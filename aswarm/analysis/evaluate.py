@@ -20,10 +20,10 @@ import numpy as np
 from brax.training.acme import running_statistics
 
 from aswarm import config_args, envs
-from aswarm.agents import checkpoint
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
 from aswarm.envs.collisions import KINDS
+from aswarm.training import checkpoint
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "race"
 # Reports of the shipped policy go here (relative to the working directory), not into the package.

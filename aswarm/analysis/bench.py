@@ -75,8 +75,8 @@ def time_env(scenario: str, worlds: int, steps: int, **overrides) -> Row:
 
 def time_stages(scenario: str, worlds: int, steps: int) -> dict[str, float]:
     """Seconds per env step of the batch for physics alone, physics + controller, and the whole step."""
-    from aswarm.envs.controller import velocity_controller
     from aswarm.envs.dynamics import drone_state, physics_step
+    from aswarm.envs.onboard_controller import velocity_controller
 
     env = envs.make(scenario)
     cfg = env.config
@@ -112,7 +112,7 @@ def time_stages(scenario: str, worlds: int, steps: int) -> dict[str, float]:
     return out
 
 
-CRAZYFLOW_SCRIPT = Path(__file__).with_name("peers") / "crazyflow_bench.py"
+CRAZYFLOW_SCRIPT = Path(__file__).with_name("crazyflow_bench.py")
 
 
 def time_crazyflow(worlds: int, steps: int, python: str | None = None) -> Row | str:
@@ -256,8 +256,8 @@ TRAIN_START, TRAIN_END = "<!-- train-bench:start -->", "<!-- train-bench:end -->
 def time_trainer(config, updates: int = 3) -> dict:
     """End-to-end training throughput (rollout + all updates), compile apart, laid out as ``aswarm train`` does
     (its worlds over ``config.devices``, 0: every device that divides them)."""
-    from aswarm.agents import sharding
     from aswarm.agents.train import make_train
+    from aswarm.training import sharding
 
     mesh = sharding.training_mesh(config.num_envs, config.devices)
     _, init, chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))

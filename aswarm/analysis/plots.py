@@ -18,7 +18,8 @@ import numpy as np
 
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import drone_state
-from aswarm.envs.scenarios import SCENARIOS, Layout, cylinders_at
+from aswarm.envs.presets import SCENARIOS
+from aswarm.envs.scenarios import Layout, cylinders_at
 
 FORMATS = (".png", ".pdf", ".svg")
 CLEARANCE_CAP = 6.0  # m: the attention figure's distance axis stops here, so near misses stay readable

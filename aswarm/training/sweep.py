@@ -294,8 +294,8 @@ def _programs(group: Group, mesh=None):
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from aswarm.agents import sharding
     from aswarm.agents.train import make_train
+    from aswarm.training import sharding
 
     base = group.trials[0].config
     k = len(group.trials)
@@ -340,7 +340,7 @@ def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None,
     """Train one group to its budget (or ``max_updates`` more); returns its timing and whether it finished."""
     from tqdm import tqdm
 
-    from aswarm.agents import checkpoint, runner, sharding
+    from aswarm.training import checkpoint, runner, sharding
 
     gdir = out / "groups" / f"g{group.index}"
     done_file = gdir / "done.json"
@@ -437,7 +437,7 @@ def run(spec: SweepSpec, out: str | Path, progress: bool = True, max_updates: in
         log: Callable[[str], None] = print) -> dict | None:
     """Train every trial of ``spec`` into ``out`` (resuming what is there); returns the results, or None when
     ``max_updates`` (updates per group in this call, for tests) stopped it early."""
-    from aswarm.agents import sharding
+    from aswarm.training import sharding
 
     out = Path(out)
     if jax.process_index() != 0:  # several hosts: one of them reports
@@ -603,8 +603,8 @@ def bench_sweep(spec: SweepSpec, seed: int | None = None, log: Callable[[str], N
     the training run alone (``num_updates`` updates, best of 2). Only the first group is timed (the
     configurations that share a program), on one device.
     """
-    from aswarm.agents import sharding
     from aswarm.agents.train import make_train
+    from aswarm.training import sharding
 
     seed = spec.seeds[0] if seed is None else seed
     group = groups(dataclasses.replace(spec, seeds=(seed,)))[0]

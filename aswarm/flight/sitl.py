@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from aswarm import config_args, envs
-from aswarm.agents import evaluate
+from aswarm.analysis import evaluate
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.scenarios import cylinders_at
 from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle

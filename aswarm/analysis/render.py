@@ -2,7 +2,7 @@
 
 MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` once, when ``mujoco`` is first imported, and the
 recording has imported it long before. So the frames are drawn in a child process (``python -m
-aswarm.render``, which imports numpy and mujoco only) started with ``MUJOCO_GL=egl``, then ``osmesa``
+aswarm.analysis.render``, which imports numpy and mujoco only) started with ``MUJOCO_GL=egl``, then ``osmesa``
 (or only the backend the user set): the first that gives a context draws the video. Where none does,
 :class:`RenderUnavailable` says so in one line.
 
@@ -176,7 +176,7 @@ def render_episode(ep, env_config, out: str | Path, *, fps: int = 25, width: int
             env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend}
             if backend not in ("egl", "osmesa"):
                 env.pop("PYOPENGL_PLATFORM")
-            proc = subprocess.run([sys.executable, "-m", "aswarm.render", str(spec_path), str(target), fmt],
+            proc = subprocess.run([sys.executable, "-m", "aswarm.analysis.render", str(spec_path), str(target), fmt],
                                   env=env, capture_output=True, text=True, timeout=timeout_s)
             if proc.returncode == 0:
                 return target, fmt, backend

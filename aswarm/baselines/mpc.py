@@ -39,7 +39,7 @@ Costs per plan step (the weights are :class:`MPCConfig` fields):
 - smoothness: ``‖u_k − u_{k−1}‖²``, with u_{−1} the command given last step.
 
 Measured (2-core AMD EPYC shared with a training run, jax 0.10.2 on CPU):
-``python -m aswarm.agents.mpc --scenario race --episodes 1000 --bench``: success 100 % (95 % CI 99.6–100),
+``python -m aswarm.baselines.mpc --scenario race --episodes 1000 --bench``: success 100 % (95 % CI 99.6–100),
 collision 0 % (0–0.4), mission 15.4 s, 398 s wall with compile; ``obstacles``: 100 % / 0 %, 104 s.
 On 200 episodes: ``lab`` 99.0 % / 1.0 % (gate), ``dynamic`` 99.0 % / 1.0 % (moving cylinder).
 Planning with the defaults (K = 64, H = 12) at 256 worlds takes 66–112 µs per drone-step on race
@@ -446,7 +446,7 @@ def rollout_mpc(env: SwarmEnv, config: MPCConfig, episodes: int, key: jax.Array,
     """Run ``episodes`` vmapped worlds with the MPC until every one has ended.
 
     Returns each episode's metrics (``env.metrics`` on its first ``done`` step), ``[episodes]`` arrays,
-    as :func:`aswarm.agents.evaluate.rollout_episodes` records them. Steps run in chunks of ``chunk`` inside
+    as :func:`aswarm.analysis.evaluate.rollout_episodes` records them. Steps run in chunks of ``chunk`` inside
     a ``while_loop`` that stops once all episodes have ended, so fast successes cost less than the time limit.
     """
     policy = make_mpc_policy(env, config)
@@ -498,9 +498,9 @@ def time_per_step(env: SwarmEnv, config: MPCConfig, worlds: int = 256, repeats: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m aswarm.agents.mpc --scenario race --episodes 64``: success and collision rates of the MPC."""
+    """``python -m aswarm.baselines.mpc --scenario race --episodes 64``: success and collision rates of the MPC."""
     from aswarm import config_args, envs
-    from aswarm.agents.evaluate import summarize
+    from aswarm.analysis.evaluate import summarize
 
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("--scenario", default="race")

@@ -21,7 +21,7 @@ import numpy as np
 from aswarm.agents import cbf_filter
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import ACTIVATIONS
-from aswarm.envs.scenarios import SCENARIOS
+from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.swarm_env import SwarmEnv
 from aswarm.flight import bundle as fb
 from aswarm.flight.observe import ObsLayout
@@ -123,7 +123,7 @@ def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Pa
 
 def export(checkpoint: str | Path, out_dir: str | Path, force: bool = False) -> Path:
     """Export a run folder's latest checkpoint (or ``"pretrained"``) to the bundle folder ``out_dir``."""
-    from aswarm.agents import evaluate
+    from aswarm.analysis import evaluate
 
     out = Path(out_dir)
     if out.exists() and not force:  # before the slow restore

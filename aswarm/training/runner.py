@@ -11,9 +11,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from aswarm.agents import checkpoint, sharding
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import make_train
+from aswarm.training import checkpoint, sharding
 
 
 class TrainingDiverged(RuntimeError):

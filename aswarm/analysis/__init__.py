@@ -1,0 +1,1 @@
+"""Evaluation, figures, videos and benchmarks of trained policies."""

@@ -1,0 +1,1 @@
+"""The host side of training: the loop, checkpoints, sharding over devices, sweeps."""
