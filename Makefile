@@ -20,7 +20,7 @@ train: $(STAMP)
 	$(VENV)/bin/aswarm train --scenario $(SCENARIO) $(ARGS)
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 bench: $(STAMP)
 	$(VENV)/bin/aswarm bench --peer-venv .venv-crazyflow $(ARGS)

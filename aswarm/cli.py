@@ -6,6 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
+from aswarm.analysis.protocol import EVAL_SEED
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line: the full usage of ``aswarm train`` (every config field) buried the error."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
 
 def _positive_ints(text: str) -> list[int]:
     try:
@@ -47,18 +56,37 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from aswarm import config_args, envs
     from aswarm.agents.config import TrainConfig
+    from aswarm.core.safety import SafetyFilterConfig
     from aswarm.training import runner
 
+    fields = config_args.overrides(args, TrainConfig)
+    safety = config_args.nested_overrides(args, "safety_filter", SafetyFilterConfig)
+    if safety:  # --safety-filter.FIELD (or its old flat spelling, --gain-min ...)
+        fields["safety_filter"] = SafetyFilterConfig(**safety)
     if args.resume:
-        run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet)
+        # Flags that may change (the budget, host-loop settings) are applied; any other is refused in one line.
+        for flag, given in (("--env", args.env), ("--out", args.out)):
+            if given:
+                raise ValueError(f"invalid {flag} with --resume: the run keeps its own; allowed with --resume: "
+                                 f"{', '.join('--' + k.replace('_', '-') for k in runner.RESUMABLE)}, --quiet")
+        run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet, changes=fields)
     else:
-        fields = config_args.overrides(args, TrainConfig)
         env_over = config_args.parse_assignments(args.env or [], envs.EnvConfig)
+        # Resolves the full env (the preset with the overrides) and checks it before anything compiles.
         config = TrainConfig(**fields, env_overrides=tuple(sorted(env_over.items())))
-        envs.make(config.scenario, **env_over)  # fail on a bad env before compiling anything
         run_dir = runner.train(config, args.out, progress=not args.quiet)
     print(f"run folder: {run_dir}  (metrics.jsonl, tb/, checkpoints/, curves.png)")
     print(f"evaluate:   aswarm eval --checkpoint {run_dir} --episodes 1000")
+    return 0
+
+
+def cmd_convert_run(args: argparse.Namespace) -> int:
+    from aswarm.training import run_config
+
+    path, filled = run_config.convert(args.run_dir)
+    how = f"filled {len(filled)} missing env field(s) from the preset: {', '.join(filled)}" if filled else \
+        "its env section was complete already"
+    print(f"converted {path} ({how}; the original is config.json.orig)")
     return 0
 
 
@@ -110,7 +138,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         sharding.initialize(args.coordinator, args.num_processes, args.process_id)
     from aswarm.training import sweep
 
-    spec = sweep.load(args.file)  # a bad file fails here, before anything compiles
+    spec = sweep.load(args.file, yes=args.yes)  # a bad file fails here, before anything compiles
     if args.bench:
         print(sweep.format_bench(sweep.bench_sweep(spec)))
         return 0
@@ -171,7 +199,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="aswarm", description=__doc__)
+    p = _Parser(prog="aswarm", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("scenarios", help="list the scenarios with their drones, obstacles and gates")
@@ -190,23 +218,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     from aswarm import config_args
     from aswarm.agents.config import METHODS, TrainConfig
+    from aswarm.core.safety import LEGACY_FIELDS, SafetyFilterConfig
 
     t = sub.add_parser("train", help="train a swarm policy (MAPPO with attention-CBF by default)",
                        description="Every TrainConfig field is a flag; env fields go through --env FIELD=VALUE. "
                        f"Methods: {'; '.join(f'{k}: {v}' for k, v in METHODS.items())}.")
     t.add_argument("--out", type=Path, default=None, help="run folder (default runs/SCENARIO-METHOD-TIME)")
     t.add_argument("--resume", type=Path, default=None,
-                   help="continue the run in this folder from its latest checkpoint")
-    t.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+                   help="continue the run in this folder from its latest checkpoint, with its own config; only "
+                   "--total-steps (extends the run), --checkpoint-minutes, --updates-per-chunk and --quiet "
+                   "may be given")
+    t.add_argument("--env", action="append", metavar="FIELD=VALUE",
+                   help="env config field of a new run, nested ones dotted (cf.mass=0.03), repeatable")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     config_args.add_fields(t, TrainConfig, skip=("env_overrides",))
+    config_args.add_nested_fields(t, "safety_filter", SafetyFilterConfig, aliases=LEGACY_FIELDS)
     t.set_defaults(func=cmd_train)
+
+    cv = sub.add_parser("convert-run", help="give an old run folder's config.json the full env it loads from",
+                        description="Runs load their environment from config.json's env section as stored. This "
+                        "fills the fields an old section lacks as the old loader did: the scenario's preset today "
+                        "with the run's env_overrides.")
+    cv.add_argument("run_dir", type=Path, help="run folder (holds config.json)")
+    cv.set_defaults(func=cmd_convert_run)
 
     e = sub.add_parser("eval", help="evaluate a trained policy on unseen seeds")
     e.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
     e.add_argument("--scenario", default=None, help="default: the scenario it was trained on")
     e.add_argument("--episodes", type=int, default=1000)
-    e.add_argument("--seed", type=int, default=10_000, help="evaluation seed (training seeds are small integers)")
+    e.add_argument("--seed", type=int, default=EVAL_SEED, help="evaluation seed (training seeds are small integers)")
     e.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     e.add_argument("--out", type=Path, default=None,
@@ -223,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("--bundle", required=True, type=Path, help="bundle folder from `aswarm export`")
     si.add_argument("--scenario", default=None, help="default: the scenario the bundle was trained on")
     si.add_argument("--episodes", type=int, default=200)
-    si.add_argument("--seed", type=int, default=10_000, help="evaluation seed, as for eval (same layouts)")
+    si.add_argument("--seed", type=int, default=EVAL_SEED, help="evaluation seed, as for eval (same layouts)")
     si.add_argument("--noise", type=float, default=0.0, metavar="METRES",
                     help="std of Gaussian noise on the positions the runtime sees")
     si.add_argument("--latency", type=int, default=0, metavar="STEPS",
@@ -241,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     def episode_flags(q: argparse.ArgumentParser) -> None:
         q.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
         q.add_argument("--scenario", default=None, help="default: the scenario it was trained on")
-        q.add_argument("--seed", type=int, default=10_000, help="evaluation seed, as for eval")
+        q.add_argument("--seed", type=int, default=EVAL_SEED, help="evaluation seed, as for eval")
         q.add_argument("--episode-index", type=int, default=0, help="which episode of that seed (eval's order)")
         q.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
 
@@ -271,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("file", type=Path, help="sweep file, e.g. sweeps/race_lr.toml")
     sw.add_argument("--out", type=Path, default=None, help="sweep folder (default runs/sweep-NAME)")
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.add_argument("--yes", action="store_true", help="run even more trials than the file's max_trials")
     sw.add_argument("--bench", action="store_true",
                     help="instead: time the configurations in one vmapped program vs one after another")
     sw.add_argument("--coordinator", default=None, metavar="HOST:PORT",

@@ -53,7 +53,7 @@ def add_fields(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = ())
     """Add ``--field-name VALUE`` for every simple field of ``cls`` (defaults None = keep the config's)."""
     defaults = cls()
     for name, kind in field_types(cls).items():
-        if name in skip or not (kind in (bool, int, float, str) or typing.get_origin(kind) is tuple):
+        if name in skip or not is_flag(kind):
             continue
         default = getattr(defaults, name)
         parser.add_argument(f"--{name.replace('_', '-')}", dest=name, default=None, metavar=kind_name(kind),
@@ -64,22 +64,132 @@ def kind_name(kind) -> str:
     return getattr(kind, "__name__", "LIST").upper()
 
 
+def is_flag(kind) -> bool:
+    """Whether a field of this type is a ``--flag`` (plain values and tuples; not nested configs)."""
+    return kind in (bool, int, float, str) or typing.get_origin(kind) is tuple
+
+
 def overrides(args: argparse.Namespace, cls) -> dict:
-    return {k: getattr(args, k) for k in field_types(cls) if getattr(args, k, None) is not None}
+    """The ``--field`` flags of ``cls`` given on the command line (those left at None are not)."""
+    return {k: getattr(args, k) for k, kind in field_types(cls).items()
+            if is_flag(kind) and getattr(args, k, None) is not None}
 
 
-def parse_assignments(items: list[str], cls) -> dict:
-    """``["num_agents=8", "reward=paper"]`` -> typed dict for ``cls``; unknown fields are an error."""
-    types = field_types(cls)
+def leaf_types(cls, prefix: str = "") -> dict:
+    """``{dotted name: type}`` of every field of ``cls``, nested dataclasses flattened (``cf.mass``)."""
+    out = {}
+    for name, kind in field_types(cls).items():
+        if dataclasses.is_dataclass(kind):
+            out.update(leaf_types(kind, f"{prefix}{name}."))
+        else:
+            out[prefix + name] = kind
+    return out
+
+
+def _allowed(cls, prefix: str) -> str:
+    """The names allowed at ``prefix`` (a nested dataclass as ``cf.FIELD``)."""
+    return ", ".join(sorted(f"{prefix}{k}.FIELD" if dataclasses.is_dataclass(t) else prefix + k
+                            for k, t in field_types(cls).items()))
+
+
+def _field_type(key: str, cls, what: str):
+    """The type of dotted field ``key`` of ``cls``; a one-line ValueError naming the allowed names."""
+    kind, prefix = cls, ""
+    for part in key.split("."):
+        if not dataclasses.is_dataclass(kind):
+            raise ValueError(f"unknown {what} field {key!r}: {prefix[:-1]} has no fields; allowed: {prefix[:-1]}")
+        types = field_types(kind)
+        if part not in types:
+            raise ValueError(f"unknown {what} field {key!r}: allowed: {_allowed(kind, prefix)}")
+        kind, prefix = types[part], f"{prefix}{part}."
+    if dataclasses.is_dataclass(kind):
+        raise ValueError(f"invalid {key}: a group of fields; allowed: {_allowed(kind, prefix)}")
+    return kind
+
+
+def parse_assignments(items: list[str], cls, what: str = "env config") -> dict:
+    """``["num_agents=8", "cf.mass=0.03"]`` -> ``{dotted name: typed value}`` for ``cls``; nested dataclass
+    fields by dotted name. Unknown fields and bad values are one-line ValueErrors naming what is allowed."""
     out = {}
     for item in items:
         if "=" not in item:
-            raise ValueError(f"invalid --env {item!r}: allowed form: FIELD=VALUE")
+            raise ValueError(f"invalid --env {item!r}: allowed form: FIELD=VALUE (FIELD may be nested: cf.mass)")
         key, text = item.split("=", 1)
-        if key not in types:
-            raise ValueError(f"unknown env config field {key!r}: allowed: {', '.join(sorted(types))}")
+        kind = _field_type(key, cls, what)
         try:
-            out[key] = _parse(key, types[key], text)
+            out[key] = _parse(key, kind, text)
         except argparse.ArgumentTypeError as e:
             raise ValueError(str(e)) from None
     return out
+
+
+def replace_fields(obj, assignments: typing.Mapping[str, object]):
+    """``obj`` (a frozen dataclass) with dotted ``assignments`` applied: ``{"cf.mass": 0.03}`` replaces
+    ``obj.cf.mass``. Validation is the dataclasses' own (``__post_init__``); unknown names are a ValueError."""
+    top, nested = {}, {}
+    for key, value in assignments.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            top[key] = value
+    names = field_types(type(obj))
+    for key in [*top, *nested]:
+        if key not in names:
+            raise ValueError(f"unknown {type(obj).__name__} field {key!r}: allowed: {_allowed(type(obj), '')}")
+    for head, sub in nested.items():
+        if head in top:
+            raise ValueError(f"invalid {head}: set as a whole and field by field; allowed: one of the two")
+        inner = getattr(obj, head)
+        if not dataclasses.is_dataclass(inner):
+            raise ValueError(f"unknown {type(obj).__name__} field {head}.{next(iter(sub))!r}: {head} has no fields")
+        top[head] = replace_fields(inner, sub)
+    return dataclasses.replace(obj, **top) if top else obj
+
+
+def from_dict(cls, data: typing.Mapping, where: str, require_all: bool = False):
+    """A dataclass ``cls`` from its ``dataclasses.asdict`` form read back from JSON (lists -> tuples, nested
+    dataclasses rebuilt). Unknown keys (and, with ``require_all``, missing ones) are a ValueError naming them."""
+    types = field_types(cls)
+    if not isinstance(data, typing.Mapping):
+        raise ValueError(f"{where}: not a table of {cls.__name__} fields")
+    unknown = sorted(set(data) - set(types))
+    if unknown:
+        raise ValueError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(types)}")
+    missing = [k for k in types if k not in data]
+    if require_all and missing:
+        raise ValueError(f"{where}: missing field {missing[0]!r}")
+
+    def value(kind, v, name):
+        if dataclasses.is_dataclass(kind):
+            return from_dict(kind, v, f"{where}.{name}", require_all)
+        return as_tuples(v)
+
+    return cls(**{k: value(types[k], v, k) for k, v in data.items()})
+
+
+def as_tuples(v):
+    """JSON lists (nested too) back to the tuples a frozen config holds."""
+    return tuple(as_tuples(x) for x in v) if isinstance(v, list) else v
+
+
+def add_nested_fields(parser: argparse.ArgumentParser, name: str, cls,
+                      aliases: typing.Mapping[str, str] | None = None) -> None:
+    """``--name.field-name VALUE`` (dest ``name.field_name``) for every simple field of the nested config ``cls``;
+    ``aliases`` {old flat flag name: field} keep older spellings (``--gain-min``) working as the same flag."""
+    old = {v: k for k, v in (aliases or {}).items()}
+    for field, kind in field_types(cls).items():
+        if not is_flag(kind):
+            continue
+        flags = [f"--{name.replace('_', '-')}.{field.replace('_', '-')}"]
+        if field in old:
+            flags.append(f"--{old[field].replace('_', '-')}")
+        dest = f"{name}.{field}"
+        parser.add_argument(*flags, dest=dest, default=None, metavar=kind_name(kind),
+                            type=lambda t, n=dest, k=kind: _parse(n, k, t), help=f"default {getattr(cls(), field)!r}")
+
+
+def nested_overrides(args: argparse.Namespace, name: str, cls) -> dict:
+    """The ``--name.field`` flags of :func:`add_nested_fields` given on the command line: ``{field: value}``."""
+    return {f: getattr(args, f"{name}.{f}") for f in field_types(cls)
+            if getattr(args, f"{name}.{f}", None) is not None}

@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from aswarm.analysis.protocol import EVAL_SEED
+
 SLOTS = 8  # the race's cylinder slots
 
 
@@ -46,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--moving", default="0,1,2,3", help="comma-separated numbers of moving cylinders (<= 8)")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--mpc-episodes", type=int, default=200, help="0 skips the MPC")
-    p.add_argument("--seed", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=EVAL_SEED)
     p.add_argument("--out", type=Path, default=Path("experiments/results"))
     args = p.parse_args(argv)
     try:

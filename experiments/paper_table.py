@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from aswarm.analysis.protocol import EVAL_SEED
+
 SCENARIOS = ("obstacles", "race")
 LEARNED = ("attention_cbf", "mappo", "a2c", "fixed_cbf", "attention_penalty", "mappo_lagrangian")
 ALL_METHODS = LEARNED + ("mpc",)
@@ -76,7 +78,7 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
     if method == "mpc":
         env = envs.make(scenario, **dict(env_overrides))
         mpc_config = mpc.MPCConfig(samples=16, horizon=5) if args.quick else mpc.MPCConfig()
-        rec = mpc.rollout_mpc(env, mpc_config, args.episodes, jax.random.PRNGKey(10_000 + args.seed))
+        rec = mpc.rollout_mpc(env, mpc_config, args.episodes, jax.random.PRNGKey(EVAL_SEED + args.seed))
         result = evaluate.summarize({k: jax.device_get(v) for k, v in rec.items()})
         result.update(method=method, variant="", scenario=scenario, episodes=args.episodes, train_seconds=0.0,
                       eval_seconds=time.perf_counter() - t0)
@@ -97,7 +99,7 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
     variants = [("", None)] if config.uses_filter else [("", None), ("+ filter", "fixed_cbf")]
     for variant, as_method in variants:
         t1 = time.perf_counter()
-        result = evaluate.evaluate_checkpoint(run_dir, episodes=args.episodes, seed=10_000 + args.seed,
+        result = evaluate.evaluate_checkpoint(run_dir, episodes=args.episodes, seed=EVAL_SEED + args.seed,
                                               with_method=as_method)
         result.update(method=method, variant=variant, scenario=scenario, train_seconds=train_seconds,
                       eval_seconds=time.perf_counter() - t1)

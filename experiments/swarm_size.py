@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+from aswarm.analysis.protocol import EVAL_SEED
+
 
 def _ints(text: str) -> list[int]:
     try:
@@ -55,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", required=True, help="an `obstacles` run folder trained with --env max_neighbours=K")
     p.add_argument("--drones", type=_ints, default=[2, 4, 8, 16])
     p.add_argument("--episodes", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=EVAL_SEED)
     p.add_argument("--bench-worlds", type=int, default=256, help="worlds of the env-steps/s measurement")
     p.add_argument("--out", type=Path, default=Path("experiments/results"))
     args = p.parse_args(argv)

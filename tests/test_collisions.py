@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from aswarm.core import geometry as geo
 from aswarm.envs import collisions as col
 from aswarm.envs import make
 
@@ -29,14 +30,14 @@ def gate(yaw=0.0):
 )
 def test_gate_crossing(prev, new, expected):
     gp, gy = gate()
-    hit = col.gate_crossed(jnp.array([prev]), jnp.array([new]), gp, gy, 0.3)
+    hit = geo.gate_crossed(jnp.array([prev]), jnp.array([new]), gp, geo.horizontal(gy), 0.3)
     assert bool(hit[0]) is expected
 
 
 def test_gate_crossing_respects_gate_yaw():
     gp, gy = gate(np.pi / 2)  # passage towards +y
-    fwd = col.gate_crossed(jnp.array([[2.0, 0.9, 1.0]]), jnp.array([[2.0, 1.1, 1.0]]), gp, gy, 0.3)
-    side = col.gate_crossed(jnp.array([[1.9, 1.0, 1.0]]), jnp.array([[2.1, 1.0, 1.0]]), gp, gy, 0.3)
+    fwd = geo.gate_crossed(jnp.array([[2.0, 0.9, 1.0]]), jnp.array([[2.0, 1.1, 1.0]]), gp, geo.horizontal(gy), 0.3)
+    side = geo.gate_crossed(jnp.array([[1.9, 1.0, 1.0]]), jnp.array([[2.1, 1.0, 1.0]]), gp, geo.horizontal(gy), 0.3)
     assert bool(fwd[0]) and not bool(side[0])
 
 
@@ -44,42 +45,42 @@ def test_cylinder_collision_distance():
     c = jnp.array([[0.0, 0.0]])
     rad, h, present = jnp.array([0.15]), jnp.array([2.0]), jnp.array([True])
     touch = 0.15 + R
-    gap = col.cylinder_clearance(jnp.array([[touch + EPS, 0, 1.0], [touch - EPS, 0, 1.0]]), c, rad, h, present, R)
+    gap = geo.cylinder_clearance(jnp.array([[touch + EPS, 0, 1.0], [touch - EPS, 0, 1.0]]), c, rad, h, present, R)
     assert float(gap[0, 0]) == pytest.approx(EPS, abs=1e-5) and float(gap[1, 0]) < 0
-    over = col.cylinder_clearance(jnp.array([[0.0, 0.0, 2.0 + R + EPS]]), c, rad, h, present, R)
+    over = geo.cylinder_clearance(jnp.array([[0.0, 0.0, 2.0 + R + EPS]]), c, rad, h, present, R)
     assert float(over[0, 0]) > 0  # passing over the top is not a collision
-    absent = col.cylinder_clearance(jnp.array([[0.0, 0.0, 1.0]]), c, rad, h, jnp.array([False]), R)
-    assert float(absent[0, 0]) == col.FAR
+    absent = geo.cylinder_clearance(jnp.array([[0.0, 0.0, 1.0]]), c, rad, h, jnp.array([False]), R)
+    assert float(absent[0, 0]) == geo.FAR
 
 
 def test_drone_collision_distance():
     pos = jnp.array([[0.0, 0, 1], [2 * R + EPS, 0, 1], [0, 2 * R - EPS, 1]])
-    gap = col.drone_clearance(pos, jnp.array([True, True, True]), R)
+    gap = geo.drone_clearance(pos, jnp.array([True, True, True]), R)
     assert float(gap[0, 1]) == pytest.approx(EPS, abs=1e-5)
     assert float(gap[0, 2]) < 0
-    assert float(gap[0, 0]) == col.FAR
-    inactive = col.drone_clearance(pos, jnp.array([True, True, False]), R)
-    assert float(inactive[0, 2]) == col.FAR
+    assert float(gap[0, 0]) == geo.FAR
+    inactive = geo.drone_clearance(pos, jnp.array([True, True, False]), R)
+    assert float(inactive[0, 2]) == geo.FAR
 
 
 def test_gate_frame_collision_distance():
     gp, gy = gate()
-    frames = col.gate_frames(gp, gy, 0.3, 0.05)
+    frames = geo.gate_frames(gp, gy, 0.3, 0.05)
     edge = 1.0 + 0.3 + 0.025  # centreline of the right bar (y)
     near = jnp.array([[2.0, edge - 0.025 - R - EPS, 1.0]])
     hit = jnp.array([[2.0, edge - 0.025 - R + EPS, 1.0]])
-    assert float(col.gate_clearance(near, frames, 0.05, R)[0, 0]) == pytest.approx(EPS, abs=1e-5)
-    assert float(col.gate_clearance(hit, frames, 0.05, R)[0, 0]) < 0
+    assert float(geo.gate_clearance(near, frames, 0.05, R)[0, 0]) == pytest.approx(EPS, abs=1e-5)
+    assert float(geo.gate_clearance(hit, frames, 0.05, R)[0, 0]) < 0
     post = jnp.array([[2.0, 1.0, 0.3]])  # the post below the gate
-    assert float(col.gate_clearance(post, frames, 0.05, R)[0, 0]) < 0
+    assert float(geo.gate_clearance(post, frames, 0.05, R)[0, 0]) < 0
     centre = jnp.array([[2.0, 1.0, 1.0]])
-    assert float(col.gate_clearance(centre, frames, 0.05, R)[0, 0]) > 0.2
+    assert float(geo.gate_clearance(centre, frames, 0.05, R)[0, 0]) > 0.2
 
 
 def test_bounds():
     lo, hi = (-1.0, -1.0, 0.0), (1.0, 1.0, 2.0)
     pos = jnp.array([[0.99, 0, 1], [1.01, 0, 1], [0, 0, 2.01], [0, 0, -0.5]])
-    assert np.asarray(col.out_of_bounds(pos, lo, hi)).tolist() == [False, True, True, False]  # floor is apart
+    assert np.asarray(geo.out_of_bounds(pos, lo, hi)).tolist() == [False, True, True, False]  # floor is apart
 
 
 def _fly(env, state, cmd, steps):

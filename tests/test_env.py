@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aswarm import envs
-from aswarm.envs import collisions as col
+from aswarm.core import geometry as geo
 from aswarm.envs.dynamics import DroneState, set_drone_state
 
 
@@ -40,9 +40,9 @@ def test_every_scenario_resets_with_documented_shapes(name):
     if len(c) > 1:
         d = np.linalg.norm(c[:, None] - c[None], axis=-1) + np.eye(len(c)) * 9
         assert d.min() > 2 * env.config.obstacle_radius
-    gaps = col.cylinder_clearance(lay.start_pos, lay.cyl_center, lay.cyl_radius, lay.cyl_height, lay.cyl_present,
+    gaps = geo.cylinder_clearance(lay.start_pos, lay.cyl_center, lay.cyl_radius, lay.cyl_height, lay.cyl_present,
                                   env.config.cf.collision_radius)
-    assert float(jnp.min(gaps, initial=col.FAR)) > 0
+    assert float(jnp.min(gaps, initial=geo.FAR)) > 0
 
 
 def test_same_key_same_layout_different_keys_differ(race):

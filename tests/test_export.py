@@ -182,7 +182,7 @@ def test_unreadable_checkpoints_give_a_clear_error(tmp_path, capsys):
     with pytest.raises(checkpoint.CheckpointError, match="is not a valid aswarm run config"):
         export.export(empty, tmp_path / "b")
     if not evaluate.PRETRAINED.exists():
-        with pytest.raises(checkpoint.CheckpointError, match="no pretrained policy ships yet"):
+        with pytest.raises(checkpoint.CheckpointError, match="pretrained policy is missing"):
             export.export("pretrained", tmp_path / "b")
     assert cli.main(["export", "--checkpoint", str(tmp_path / "nope"), "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err.strip()

@@ -24,8 +24,9 @@ from aswarm import cli, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
 from aswarm.analysis import evaluate
+from aswarm.core import geometry
 from aswarm.envs import swarm_env
-from aswarm.flight import bench, cbf, estimator, export, observe, sitl
+from aswarm.flight import bench, estimator, export, observe, sitl
 from aswarm.flight import bundle as fb
 from aswarm.flight import fly as ffly
 from aswarm.flight import runtime as fc
@@ -172,10 +173,10 @@ def test_numpy_observation_equals_the_simulators(race):
     s = _states(race)
     lay = race.clean.layout  # the same layouts in both rollouts (same reset keys)
     n = race.env.num_agents
-    normals = np.broadcast_to(observe.gate_normals(lay.gate_yaw)[:, None], lay.waypoints.shape)
-    cyl_pos, cyl_vel = observe.cylinders_at(lay.cyl_center[s.world], lay.cyl_axis[s.world],
-                                            lay.cyl_amplitude[s.world], lay.cyl_omega[s.world],
-                                            lay.cyl_phase[s.world], s.time)
+    normals = np.broadcast_to(geometry.horizontal(lay.gate_yaw)[:, None], lay.waypoints.shape)
+    cyl_pos, cyl_vel = geometry.cylinders_at(lay.cyl_center[s.world], lay.cyl_axis[s.world],
+                                             lay.cyl_amplitude[s.world], lay.cyl_omega[s.world],
+                                             lay.cyl_phase[s.world], s.time)
     obs = observe.observe(s.pos.astype(float), s.quat, s.vel, s.ang_vel, lay.waypoints[s.world], normals[s.world],
                           s.target, ~s.finished, cyl_pos, cyl_vel, lay.cyl_radius[s.world], lay.cyl_present[s.world],
                           race.env.config.cf.collision_radius, race.env.config.arena_low, race.env.config.arena_high)
@@ -200,7 +201,7 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
     want = env._observe(DroneState(*(jnp.asarray(x, jnp.float32) for x in (pos, quat, vel, ang))), s.layout, tr,
                         jnp.zeros(()))
     lay = jax.tree.map(np.asarray, s.layout)
-    normals = np.broadcast_to(observe.gate_normals(lay.gate_yaw)[None], lay.waypoints.shape)
+    normals = np.broadcast_to(geometry.horizontal(lay.gate_yaw)[None], lay.waypoints.shape)
     got = observe.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
                           lay.cyl_center, np.zeros_like(lay.cyl_center), lay.cyl_radius, lay.cyl_present,
                           env.config.cf.collision_radius, env.config.arena_low, env.config.arena_high,
@@ -238,47 +239,7 @@ def test_numpy_policy_and_filter_match_jax_on_recorded_states(race):
     assert np.all(pol.converged)
 
 
-def _reference_qp(u_nom, A, b, mask, u_max, rho=1e6):
-    """Exact solution by enumerating active sets (≤ 4 rows in R^4) with the KKT conditions (float64)."""
-    import itertools
-
-    A, b = A[mask], b[mask]
-    nrm = np.linalg.norm(A, axis=1)
-    A, b = A / nrm[:, None], b / nrm
-    eye = np.eye(3)
-    G = np.block([[A, np.full((len(b), 1), 1 / np.sqrt(rho))], [eye, np.zeros((3, 1))], [-eye, np.zeros((3, 1))]])
-    h = np.concatenate([b, np.full(6, -u_max)])
-    x0 = np.append(u_nom, 0.0)
-    if np.all(G @ x0 >= h - 1e-12):
-        return x0[:3]
-    for k in range(1, 5):
-        for S in itertools.combinations(range(len(h)), k):
-            N = G[list(S)]
-            gram = N @ N.T
-            if np.linalg.cond(gram) > 1e13:  # dependent rows (the slack column makes good sets ~1e7)
-                continue
-            nu = np.linalg.solve(gram, h[list(S)] - N @ x0)
-            x = x0 + N.T @ nu
-            if np.all(nu >= -1e-7) and np.all(G @ x - h >= -1e-7):  # (|x| reaches 1e4 when very infeasible)
-                return x[:3]
-    raise AssertionError("no KKT point")
-
-
-@pytest.mark.parametrize("scalar_below", [0, 10_000], ids=["batched", "one-by-one"])
-def test_qp_matches_exact_enumeration_on_random_problems(scalar_below, monkeypatch):
-    """Both ways the active-set steps run (over a batch, or problem by problem in floats) are exact."""
-    monkeypatch.setattr(cbf, "SCALAR_MAX_PROBLEMS", scalar_below)
-    rng = np.random.default_rng(3)
-    P, m = 120, 6
-    A = rng.normal(size=(P, m, 3))
-    b = rng.normal(size=(P, m)) * 2.0
-    mask = rng.uniform(size=(P, m)) < 0.8
-    u_nom = rng.uniform(-3, 3, size=(P, 3))
-    res = cbf.filter_velocity(u_nom, A, b, mask, 2.0)
-    ref = np.stack([_reference_qp(u_nom[i], A[i], b[i], mask[i], 2.0) for i in range(P)])
-    assert res.intervened.mean() > 0.5 and np.all(res.converged)
-    np.testing.assert_allclose(res.u, ref, atol=1e-8)
-    assert np.all(np.abs(res.u) <= 2.0)
+# The numpy QP against the shared reference solver and OSQP: tests/test_cbf_filter.py.
 
 
 def test_sitl_matches_jax_closed_loop_within_noise(race):

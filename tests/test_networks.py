@@ -27,7 +27,7 @@ def test_shapes_and_attention_weights_sum_to_one():
     chex.assert_shape(alpha, (n, h))
     np.testing.assert_allclose(alpha.sum(-1), 1.0, rtol=1e-5)
     assert (np.asarray(theta[:, 0]) >= 0).all()
-    cfg = agent.config
+    cfg = agent.config.safety_filter
     assert ((np.asarray(theta[:, 1]) >= cfg.gain_min) & (np.asarray(theta[:, 1]) <= cfg.gain_max)).all()
     chex.assert_shape(agent.actor.apply(params["actor"], obs), (n, 6))
     chex.assert_shape(agent.critic.apply(params["critic"], obs.reshape(-1)), (n,))

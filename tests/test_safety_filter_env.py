@@ -8,6 +8,7 @@ import pytest
 from aswarm import envs
 from aswarm.agents import cbf_filter
 from aswarm.agents.config import TrainConfig
+from aswarm.core.safety import SafetyFilterConfig
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import DroneState, set_drone_state
 
@@ -18,8 +19,9 @@ def _run(env, state, command, use_filter, seconds=3.0, gain=2.0, margin=MARGIN, 
     step = jax.jit(env.step)
     c = env.config
     steps = round(seconds * c.policy_freq)
+    safety = SafetyFilterConfig(margin=margin)
     filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], gain),
-                                                           c.max_speed, c.cf.collision_radius, margin,
+                                                           c.max_speed, c.cf.collision_radius, safety,
                                                            c.gate_half_opening, c.gate_bar))
     for _ in range(steps):
         res = filt(state.obs, command)
@@ -145,11 +147,11 @@ def test_descending_into_the_floor_is_stopped():
 
 def test_largest_default_gain_is_safe_at_full_speed():
     """The gain range is bounded by what the controller's lag allows: full speed, off-centre, gain_max."""
-    cfg = TrainConfig()
+    cfg = TrainConfig().safety_filter
     env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))
     s = _run(env, s, jnp.array([[env.config.max_speed, 0.0, 0.0]]), True, gain=cfg.gain_max,
-             margin=cfg.filter_margin)
+             margin=cfg.margin)
     assert not bool(s.tracker.collided[0])

@@ -118,3 +118,71 @@ def test_hparams_reject_fields_that_change_shapes():
         hparams.check_fields(["num_envs"])
     with pytest.raises(ValueError, match="exactly the sweep fields"):
         hparams.check_values(("actor_lr",), {})
+
+
+def test_one_host_loop_marks_a_diverged_trial_and_stops_when_every_trial_has(tmp_path):
+    """The NaN policy of runs and sweep groups alike, on a stand-in program (no compile): trial 1 goes NaN at
+    update 3 and is marked while trial 0 trains on; when trial 0 goes NaN too (update 5), the loop stops before
+    logging or saving that chunk. Resuming truncates the logs (atomically) to the restored update."""
+    import jax.numpy as jnp
+
+    from aswarm import envs
+    from aswarm.agents.config import TrainConfig
+    from aswarm.agents.train import TrainState
+    from aswarm.training import runner, sharding
+
+    cfg = TrainConfig(scenario="hover", method="mappo", num_envs=4, rollout_steps=2, minibatches=1,
+                      updates_per_chunk=2, total_steps=4 * 2 * 8, checkpoint_minutes=1e-6)
+    limit = jnp.array([4, 2])  # trial i's loss and parameters are NaN past this update
+
+    def init_fn():
+        return TrainState(params={"w": jnp.ones((2, 3))}, opt_state={"mu": jnp.zeros((2, 3))},
+                          obs_norm={"mean": jnp.zeros((2, 5))}, env_state={"x": jnp.zeros((2, 4))},
+                          key=jnp.zeros((2, 2), jnp.uint32), update=jnp.zeros(2, jnp.int32), env_steps=jnp.zeros(2))
+
+    def chunk_fn(ts, k):
+        u = ts.update[:, None] + jnp.arange(1, k + 1)
+        loss = jnp.where(u > limit[:, None], jnp.nan, u * 1.0)
+        update = ts.update + k
+        w = jnp.where((update > limit)[:, None], jnp.nan, ts.params["w"] + k)
+        zeros = jnp.zeros_like(loss)
+        metrics = {"train/loss": loss, "episode/success": zeros, "episode/episode_return": zeros,
+                   "episode/collision": zeros}
+        return ts.replace(params={"w": w}, update=update), metrics
+
+    mesh = sharding.make_mesh(2, cfg.num_envs, jax.devices()[:1])
+    program = runner.Program(envs.make("hover"), init_fn, chunk_fn, (), mesh, stacked=True)
+    dirs = [tmp_path / "t0", tmp_path / "t1"]
+    for d in dirs:
+        d.mkdir()
+    logs = []
+    with pytest.raises(runner.TrainingDiverged, match=r"at update 5; the last good checkpoint \(update 4\)"):
+        runner.run_loop(program, cfg, tmp_path / "g", dirs, progress=False, log=logs.append, label="g")
+    assert (dirs[1] / "DIVERGED").read_text().strip().endswith("at update 3")
+    assert (dirs[0] / "DIVERGED").read_text().strip().endswith("at update 5")
+    assert "g: t1 diverged at update 3" in logs
+    rows = [sweep.read_rows(d) for d in dirs]
+    assert [r["update"] for r in rows[0]] == [r["update"] for r in rows[1]] == [1, 2, 3, 4]
+    assert [r["train/loss"] for r in rows[0]] == [1.0, 2.0, 3.0, 4.0]
+    assert np.isnan(rows[1][2]["train/loss"]) and rows[1][1]["train/loss"] == 2.0
+    assert checkpoint.manager(tmp_path / "g").latest_step() == 4
+    with (dirs[0] / "metrics.jsonl").open("a") as f:  # a row written after the checkpoint by a killed run
+        f.write(json.dumps({**rows[0][-1], "update": 5}) + "\n")
+    with pytest.raises(runner.TrainingDiverged):
+        runner.run_loop(program, cfg, tmp_path / "g", dirs, progress=False, log=logs.append, label="g")
+    assert "g: resumed at update 4" in logs
+    assert [r["update"] for r in sweep.read_rows(dirs[0])] == [1, 2, 3, 4]
+    assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_sweep_sets_nested_env_fields_and_names_the_allowed_ones():
+    doc = {"scenario": "hover", "total_steps": 128, "seeds": [0],
+           "grid": {"env": {"cf": {"mass": [0.027, 0.03]}}, "gains.max_tilt_deg": [20.0]}}
+    with pytest.raises(ValueError, match=r"unknown field 'gains.max_tilt_deg'.* or env.FIELD"):
+        sweep.parse(doc)
+    doc["grid"]["env.gains.max_tilt_deg"] = doc["grid"].pop("gains.max_tilt_deg")
+    spec = sweep.parse(doc)
+    assert [(c.env.cf.mass, c.env.gains.max_tilt_deg) for c in spec.configs] == [(0.027, 20.0), (0.03, 20.0)]
+    assert len(sweep.groups(spec)) == 2  # env values are baked into the program: one compile each
+    with pytest.raises(ValueError, match=r"unknown env field 'cf.mas'; allowed: .*cf.mass"):
+        sweep.parse({**doc, "grid": {"env": {"cf": {"mas": [0.03]}}}})

@@ -11,6 +11,7 @@ import pytest
 
 from aswarm import envs
 from aswarm.agents.config import TrainConfig
+from aswarm.core.safety import SafetyFilterConfig
 from aswarm.training import checkpoint, runner
 
 SMALL = dict(scenario="hover", num_envs=32, rollout_steps=8, minibatches=2, epochs=2, updates_per_chunk=2,
@@ -140,7 +141,7 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
     assert not any(small.rglob("state"))
     chex.assert_trees_all_equal(evaluate.load(run)[1], evaluate.load(small)[1])
     other = dataclasses.replace(cfg, actor_hidden=(16,))
-    runner.write_config(run, other, envs.make("hover").config)
+    runner.write_config(run, other)
     with pytest.raises(checkpoint.CheckpointError, match="cannot be restored into this configuration"):
         _restore(run)
 
@@ -168,7 +169,7 @@ def test_eval_errors_are_clear(tmp_path):
     with pytest.raises(ValueError, match="invalid episodes=0"):
         evaluate.evaluate_checkpoint(tmp_path, episodes=0)
     if not evaluate.PRETRAINED.exists():
-        with pytest.raises(checkpoint.CheckpointError, match="no pretrained policy ships yet"):
+        with pytest.raises(checkpoint.CheckpointError, match="pretrained policy is missing"):
             evaluate.evaluate_checkpoint("pretrained")
     else:  # the shipped policy loads and flies (short episodes keep this fast)
         r = evaluate.evaluate_checkpoint("pretrained", episodes=2, env_overrides=["episode_seconds=0.5"])
@@ -192,8 +193,8 @@ def test_correction_penalty_charges_the_filters_correction_in_the_training_rewar
     from aswarm.agents.train import make_train
 
     # A low fixed gain makes the floor barrier slow every random descent faster than 0.25 m/s.
-    base = dict(method="fixed_cbf", fixed_gain=0.3, scenario="hover", num_envs=16, rollout_steps=8,
-                minibatches=2, total_steps=16 * 8)
+    base = dict(method="fixed_cbf", safety_filter=SafetyFilterConfig(fixed_gain=0.3), scenario="hover", num_envs=16,
+                rollout_steps=8, minibatches=2, total_steps=16 * 8)
     # The penalty is a value-only hyperparameter: one compiled trainer serves both values.
     _, init, update_chunk, _ = make_train(TrainConfig(**base), sweep_fields=("correction_penalty",))
     init, chunk = jax.jit(init), jax.jit(update_chunk, static_argnums=1)
@@ -235,3 +236,97 @@ def test_target_critics_follow_the_critics_by_soft_updates():
     assert not np.allclose(ts1.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"],
                            ts.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"])
     assert make_train(TrainConfig(method="mappo", **SMALL))[1](jax.random.PRNGKey(0)).target == {}
+
+
+def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monkeypatch):
+    from aswarm.envs import presets
+    from aswarm.training import run_config
+
+    cfg = TrainConfig(method="mappo", env_overrides=(("cf.mass", 0.03), ("gains.max_tilt_deg", 20.0)), **SMALL)
+    assert cfg.env.cf.mass == 0.03 and cfg.env.gains.max_tilt_deg == 20.0 and cfg.env.scenario == "hover"
+    runner.write_config(tmp_path, cfg)
+    # Editing a preset changes new runs only: the stored run keeps the env it was trained on.
+    hover = presets.SCENARIOS["hover"]
+    monkeypatch.setitem(presets.SCENARIOS, "hover",
+                        dataclasses.replace(hover, preset={**hover.preset, "episode_seconds": 9.0}))
+    assert TrainConfig(**SMALL).env.episode_seconds == 9.0
+    loaded = checkpoint.load_config(tmp_path)
+    assert loaded == cfg and loaded.env.episode_seconds == 6.0 and loaded.env.cf.mass == 0.03
+    assert json.loads(run_config.dumps(loaded)) == json.loads((tmp_path / "config.json").read_text())
+    # An old config.json without a usable env: one line naming the converter, which fills what is missing as the
+    # old loader did (preset + env_overrides) and keeps what is stored.
+    raw = json.loads((tmp_path / "config.json").read_text())
+    del raw["env"]["episode_seconds"], raw["env"]["cf"]["kf"]
+    raw["env"]["layout_jitter"] = 0.5
+    (tmp_path / "config.json").write_text(json.dumps(raw))
+    with pytest.raises(checkpoint.CheckpointError, match=r"holds no usable env .*`aswarm convert-run ") as e:
+        checkpoint.load_config(tmp_path)
+    assert "\n" not in str(e.value)
+    from aswarm import cli
+
+    assert cli.main(["convert-run", str(tmp_path)]) == 0
+    fixed = checkpoint.load_config(tmp_path)
+    assert fixed.env.episode_seconds == 9.0 and fixed.env.layout_jitter == 0.5 and fixed.env.cf.mass == 0.03
+    assert fixed.env.cf.kf == envs.EnvConfig().cf.kf and (tmp_path / "config.json.orig").exists()
+    del raw["env"]
+    (tmp_path / "config.json").write_text(json.dumps(raw))
+    with pytest.raises(checkpoint.CheckpointError, match="no 'env' section"):
+        checkpoint.load_config(tmp_path)
+    # The shipped policy's folder (env_overrides and an env section) loads its env as stored.
+    from aswarm.analysis import evaluate
+
+    if evaluate.PRETRAINED.exists():
+        shipped = checkpoint.load_config(evaluate.PRETRAINED)
+        stored = json.loads((evaluate.PRETRAINED / "config.json").read_text())["env"]
+        assert json.loads(json.dumps(dataclasses.asdict(shipped.env))) == stored
+
+
+def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):
+    from aswarm import cli, config_args
+
+    got = config_args.parse_assignments(["cf.mass=0.03", "gains.max_tilt_deg=20", "num_agents=2"], envs.EnvConfig)
+    assert got == {"cf.mass": 0.03, "gains.max_tilt_deg": 20.0, "num_agents": 2}
+    env = config_args.replace_fields(envs.EnvConfig(), got)
+    assert (env.cf.mass, env.gains.max_tilt_deg, env.num_agents, env.cf.kf) == (0.03, 20.0, 2, envs.EnvConfig().cf.kf)
+    for item, message in [
+        ("cf.mas=1", r"unknown env config field 'cf.mas': allowed: cf.arm_length, .*cf.mass"),
+        ("gainz.kp_rate=1", r"unknown env config field 'gainz.kp_rate': allowed: .*gains.FIELD"),
+        ("cf=1", r"invalid cf: a group of fields; allowed: cf.arm_length"),
+        ("num_agents.x=1", r"unknown env config field 'num_agents.x': num_agents has no fields"),
+        ("gains.max_tilt_deg=steep", r"invalid gains.max_tilt_deg='steep': allowed: a number"),
+        ("cf.inertia=1,x,3", r"invalid cf.inertia='1,x,3': allowed: comma-separated floats"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            config_args.parse_assignments([item], envs.EnvConfig)
+    # From the command line, before anything compiles: the same one line, exit 2; validation of the value too.
+    assert cli.main(["train", "--env", "cf.mas=1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("aswarm train: error: unknown env config field 'cf.mas': allowed: cf.")
+    assert cli.main(["train", "--env", "gains.kp_rate=nan"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["aswarm train: error: invalid gains.kp_rate='nan': allowed: a finite number"]
+
+
+def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
+    from aswarm import cli
+
+    flags = ["--scenario", "hover", "--method", "mappo", "--num-envs", "32", "--rollout-steps", "8",
+             "--updates-per-chunk", "2", "--quiet"]
+    run = tmp_path / "r"
+    assert cli.main(["train", *flags, "--total-steps", str(32 * 8), "--out", str(run)]) == 0
+    capsys.readouterr()
+    for extra, flag in [(["--actor-lr", "0.1"], "--actor-lr"), (["--num-envs", "64"], "--num-envs"),
+                        (["--method", "a2c"], "--method"), (["--env", "num_agents=2"], "--env"),
+                        (["--out", str(tmp_path / "x")], "--out"), (["--total-steps", "10"], "--total-steps")]:
+        assert cli.main(["train", "--resume", str(run), *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"aswarm train: error: invalid {flag}"), err
+        assert "allowed" in err[0]
+    assert len(runner.read_metrics(run)) == 1 and checkpoint.load_config(run).total_steps == 32 * 8
+    # The flags it was trained with may be given again; --total-steps extends the run and is stored.
+    assert cli.main(["train", "--resume", str(run), *flags, "--total-steps", str(32 * 8 * 2),
+                     "--checkpoint-minutes", "0.5"]) == 0
+    cfg = checkpoint.load_config(run)
+    assert (cfg.total_steps, cfg.checkpoint_minutes) == (32 * 8 * 2, 0.5)
+    assert [r["update"] for r in runner.read_metrics(run)] == [1, 2]
+    assert checkpoint.manager(run).latest_step() == 2

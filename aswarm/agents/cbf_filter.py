@@ -1,46 +1,29 @@
-"""Control-barrier-function (CBF) safety filter for per-drone velocity commands.
+"""Control-barrier-function (CBF) safety filter for per-drone velocity commands, in JAX.
 
-Model: each drone is a single integrator at the velocity level, ``ṗ ≈ u`` with
-``u ∈ R^3`` the world-frame velocity command. Every hazard ``j`` has a barrier
-``h_j(p) ≥ 0`` (safe set) and the CBF condition
-
-    ḣ_j = ∇h_j · (u − v_j) ≥ −γ_j h_j,
-
-with ``v_j`` the hazard's velocity and ``γ_j > 0`` a class-K gain (from the
-attention-CBF network, θ_CBF). Each condition is a half-space ``a_j · u ≥ b_j``.
-:func:`barrier_constraints` builds the rows for one drone, :func:`filter_velocity`
-finds the velocity closest to the policy's that satisfies all of them:
+The barrier rows ``a_j · u ≥ b_j`` (one per hazard, see :mod:`aswarm.core.barriers` for their
+derivation) are built by :mod:`aswarm.core.barriers`, shared with the numpy flight filter
+(``aswarm.flight.cbf``); :func:`filter_velocity` finds the velocity closest to the policy's that
+satisfies all of them:
 
     min_{u, s}  ||u − u_nom||² + ρ s²
     s.t.        â_j · u + s ≥ b̂_j   (present rows j, normalised to ||â_j|| = 1)
                 −u_max ≤ u ≤ u_max   (hard box, never relaxed).
 
-Both take one drone; ``jax.vmap`` them over drones and worlds. Row layout of
-:func:`barrier_constraints` (and of its ``gamma``): ``[cylinders M | neighbours K | floor 1]``.
+It takes one drone; ``jax.vmap`` it over drones and worlds. :func:`filter_from_obs` does both from
+raw observations, with the settings of a :class:`~aswarm.core.safety.SafetyFilterConfig`.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aswarm.envs import collisions as col
+from aswarm.core import barriers
+from aswarm.core.safety import SafetyFilterConfig
 
 _DIM = 4  # decision variables: the velocity (3) and the scaled shared slack
 _SLOTS = _DIM  # independent active constraints in R^4: at most 4
-_EPS = 1e-9
-
-
-class BarrierConstraints(NamedTuple):
-    """Linear CBF constraints ``A u ≥ b`` for one drone (rows of absent hazards are masked out)."""
-
-    A: jax.Array  # [m, 3] ∇h_j (unit vectors: every barrier here is a distance)
-    b: jax.Array  # [m] ∇h_j · v_j − γ_j h_j (neighbour rows: see neighbour_constraints)
-    mask: jax.Array  # [m] bool, true where the hazard is present
-    h: jax.Array  # [m] barrier values (m): clearance minus margin, negative = inside the margin
 
 
 @struct.dataclass
@@ -53,121 +36,6 @@ class FilterResult:
     correction_norm: jax.Array  # [] ||u − u_nom||
     active: jax.Array  # [m] bool: constraints binding at the solution
     converged: jax.Array  # [] bool: the active-set loop finished within max_iter
-
-
-# ---------------------------------------------------------------- barriers
-def _unit(d: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(||d||, d/||d||) over the last axis; zero direction where d = 0 (keeps gradients finite)."""
-    sq = jnp.sum(d * d, -1)
-    ok = sq > _EPS**2
-    dist = jnp.sqrt(jnp.where(ok, sq, 1.0))
-    return jnp.where(ok, dist, 0.0), jnp.where(ok[..., None], d / dist[..., None], 0.0)
-
-
-def cylinder_constraints(pos: jax.Array, center: jax.Array, radius: jax.Array, vel: jax.Array,
-                         present: jax.Array, gamma: jax.Array, *, drone_radius: float,
-                         margin: float = 0.0) -> BarrierConstraints:
-    """Rows for vertical cylinders (infinite in z: conservative above a cylinder's top).
-
-    pos [3]; center [M, 2]; radius [M]; vel [M, 2] (cylinder xy velocity); present [M]; gamma [M] or [].
-    h = ||p_xy − c|| − (R + r_d + margin): the distance form rather than the squared one, so
-    that ∇h is a unit vector and γ has one meaning for every hazard (the gap may close at most
-    γ·h m/s), independent of the cylinder's radius; the squared form would let a drone approach
-    a large cylinder faster than a small one at the same gap (rate γ(d² − R²)/2d).
-    """
-    dist, n_xy = _unit(pos[:2] - center)  # [M], [M, 2]
-    h = dist - (radius + drone_radius + margin)
-    A = jnp.concatenate([n_xy, jnp.zeros_like(n_xy[:, :1])], -1)
-    b = jnp.sum(n_xy * vel, -1) - gamma * h
-    return BarrierConstraints(A, b, present, h)
-
-
-def neighbour_constraints(pos: jax.Array, vel: jax.Array, nbr_pos: jax.Array, nbr_vel: jax.Array,
-                          present: jax.Array, gamma: jax.Array, *, drone_radius: float,
-                          margin: float = 0.0, share: float | jax.Array = 0.5) -> BarrierConstraints:
-    """Rows for the other drones (spheres).
-
-    pos, vel [3] (this drone); nbr_pos, nbr_vel [K, 3]; present [K]; gamma [K] or []; share [] or [K].
-    h = ||p − q|| − (2 r_d + margin) (distance form, as for cylinders) and the pair condition is
-    n · (u − u_k) ≥ −γ h with n = (p − q)/||p − q||. Responsibility is split: this drone keeps
-
-        n · u ≥ n · ((1 − w) v + w v_k) − w γ h,      w = share ∈ (0, 1].
-
-    If the neighbour applies the same rule with share 1 − w (w = 1/2 for both by default) and
-    both see the same velocities, the two rows add up to the pair condition for any v, v_k: the
-    split is sound without knowing the other's command. The reference (1 − w) v + w v_k (an ORCA-
-    style reciprocal split) makes each drone take its share of the change from the current
-    relative velocity; with v = v_k = 0 it reduces to the classic n · u ≥ −γ h / 2. share = 1
-    treats the neighbour as a non-cooperative moving obstacle.
-    """
-    dist, n = _unit(pos - nbr_pos)  # [K], [K, 3]
-    h = dist - (2.0 * drone_radius + margin)
-    share = jnp.asarray(share)
-    ref_vel = (1.0 - share)[..., None] * vel + share[..., None] * nbr_vel
-    b = jnp.sum(n * ref_vel, -1) - share * gamma * h
-    return BarrierConstraints(n, b, present, h)
-
-
-def floor_constraint(pos: jax.Array, gamma: jax.Array, *, z_min: float) -> BarrierConstraints:
-    """One row for the floor: h = z − z_min (z_min: lowest allowed altitude of the drone centre)."""
-    h = pos[2:3] - z_min
-    A = jnp.array([[0.0, 0.0, 1.0]], dtype=pos.dtype)
-    return BarrierConstraints(A, -gamma * h, jnp.ones(1, bool), h)
-
-
-# Inward normals of the arena's walls, in the order of the observation's wall_clearance field.
-WALL_NORMALS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
-
-
-def wall_constraints(clearance: jax.Array, gamma: jax.Array, *, drone_radius: float,
-                     margin: float = 0.0) -> BarrierConstraints:
-    """Rows for the arena's 4 side walls and its ceiling: ``clearance`` [5] is the drone centre's distance to
-    each (x low, x high, y low, y high, ceiling), h = clearance − (r_d + margin), ∇h the inward normal."""
-    h = clearance - (drone_radius + margin)
-    A = jnp.asarray(WALL_NORMALS, clearance.dtype)
-    return BarrierConstraints(A, -gamma * h, jnp.ones(h.shape, bool), h)
-
-
-def gate_constraints(pos: jax.Array, gate_center: jax.Array, gate_normal: jax.Array, present: jax.Array,
-                     gamma: jax.Array, *, half_opening: float, bar: float, drone_radius: float,
-                     margin: float = 0.0) -> BarrierConstraints:
-    """Rows for the frame of one gate: its 4 edges and the post to the floor (5 round bars).
-
-    pos [3]; gate_center [3] (centre of the opening); gate_normal [3] (horizontal direction of
-    passage); present [] bool; gamma [] or [5]. h = distance to the bar's axis − (bar/2 + r_d +
-    margin), ∇h the unit vector from the nearest point of the bar to the drone: a drone flying
-    through the middle of the opening sees only sideways normals and is not slowed.
-    """
-    yaw = jnp.arctan2(gate_normal[1], gate_normal[0])
-    frames = col.gate_frames(gate_center[None], yaw[None], half_opening, bar)[0]  # [5, 2, 3]
-    dist, n = _unit(pos - col.closest_on_segment(pos, frames[:, 0], frames[:, 1]))
-    h = dist - (bar / 2 + drone_radius + margin)
-    return BarrierConstraints(n, -gamma * h, jnp.broadcast_to(present, h.shape), h)
-
-
-def barrier_constraints(pos: jax.Array, vel: jax.Array, cyl_center: jax.Array, cyl_radius: jax.Array,
-                        cyl_vel: jax.Array, cyl_present: jax.Array, nbr_pos: jax.Array, nbr_vel: jax.Array,
-                        nbr_present: jax.Array, gamma: jax.Array, *, drone_radius: float, margin: float = 0.0,
-                        floor_z: float = 0.0, neighbour_share: float | jax.Array = 0.5) -> BarrierConstraints:
-    """All CBF rows for one drone, laid out ``[cylinders M | neighbours K | floor 1]`` (m = M + K + 1).
-
-    pos, vel [3]: this drone's position and velocity; cyl_center [M, 2], cyl_radius [M],
-    cyl_vel [M, 2], cyl_present [M] bool; nbr_pos, nbr_vel [K, 3], nbr_present [K] bool
-    (exclude the drone itself); gamma [m] class-K gains (1/s) in the same layout, or a scalar.
-    Every barrier is a surface gap minus ``margin`` (the floor's: z − (floor_z + r_d + margin)).
-    Returns A [m, 3], b [m], mask [m], h [m]. Gates or arena walls can be appended by the caller
-    as further rows with the same (A, b, mask) convention.
-    """
-    M, K = cyl_center.shape[0], nbr_pos.shape[0]
-    gamma = jnp.broadcast_to(jnp.asarray(gamma, pos.dtype), (M + K + 1,))
-    parts = (
-        cylinder_constraints(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, gamma[:M],
-                             drone_radius=drone_radius, margin=margin),
-        neighbour_constraints(pos, vel, nbr_pos, nbr_vel, nbr_present, gamma[M:M + K],
-                              drone_radius=drone_radius, margin=margin, share=neighbour_share),
-        floor_constraint(pos, gamma[M + K:], z_min=floor_z + drone_radius + margin),
-    )
-    return BarrierConstraints(*(jnp.concatenate(f, 0) for f in zip(*parts)))
 
 
 # ---------------------------------------------------------------- QP solver
@@ -338,8 +206,8 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     dt = jnp.result_type(u_nom, A, b, jnp.float32)
     u_nom, A, b = u_nom.astype(dt), A.astype(dt), b.astype(dt)
     m = A.shape[0]
-    nrm, a_hat = _unit(A)
-    valid_rows = mask & (nrm > _EPS)
+    nrm, a_hat = barriers.unit(A)
+    valid_rows = mask & (nrm > barriers.EPS)
     b_hat = jnp.where(valid_rows, b / jnp.where(valid_rows, nrm, 1.0), 0.0)
     u_max = jnp.broadcast_to(jnp.asarray(u_max, dt), (3,))
     # Decision x = (u, √ρ s), so the cost is ½||x − x0||²; rows G x ≥ h are the m CBF rows
@@ -395,53 +263,21 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
 
 # ------------------------------------------------------- from observations
 def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_max: float, drone_radius: float,
-                    margin: float, gate_half_opening: float = 0.0, gate_bar: float = 0.0,
-                    max_iter: int = 16) -> FilterResult:
+                    safety: SafetyFilterConfig, gate_half_opening: float = 0.0, gate_bar: float = 0.0) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]).
 
-    Everything the barriers need is in the observation (relative cylinder positions, their
-    clearance and velocity, relative neighbour positions and velocities, altitude, the current
-    gate's centre and direction), so the flight side can run the very same filter from its own
-    observations. Positions are taken in a frame centred on the drone's horizontal position, with
-    z the altitude above the floor. ``gain`` [..., n] is one class-K gain per drone, applied to all
-    its barriers. Rows: ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous
-    gate 5]``; the gate rows are present when ``gate_bar > 0`` and the observation has that gate
-    (non-zero direction). The gate passed last is kept: right after its plane a drone turning towards
-    the next gate can clip its frame from behind. The walls keep the drone centre inside the arena:
-    without them, swarms of 8 and 16 drones pushed their outer drones out of it (README).
+    The rows are :func:`aswarm.core.barriers.obs_rows` (``[cylinders M | neighbours K | floor 1 | walls 5 |
+    current gate 5 | previous gate 5]``), so the flight side runs the very same filter from its own
+    observations. ``gain`` [..., n] is one class-K gain per drone, applied to all its rows; margin,
+    neighbour share, floor height and the QP's settings come from ``safety``.
     """
-    own, cyl, nbr = layout.split(obs)
-    f = layout.own_slices
-    alt = own[..., f["altitude"]]
-    vel = own[..., f["vel"]]
-    walls = own[..., f["wall_clearance"]]
-    zero = jnp.zeros_like(alt)
-    pos = jnp.concatenate([zero, zero, alt], -1)
-    gate_center = pos - own[..., f["target_rel"]]
-    gate_normal = own[..., f["target_normal"]]
-    gate_present = (jnp.sum(gate_normal**2, -1) > 0.25) & (gate_bar > 0)
-    prev_center = pos - own[..., f["prev_gate_rel"]]
-    prev_normal = own[..., f["prev_gate_normal"]]
-    prev_present = (jnp.sum(prev_normal**2, -1) > 0.25) & (gate_bar > 0)
-    rel = cyl[..., 0:2]
-    cyl_radius = jnp.linalg.norm(rel, axis=-1) - cyl[..., 2] - drone_radius
-    cyl_present = cyl[..., 5] > 0.5
-    nbr_pos = nbr[..., 0:3] + pos[..., None, :]
-    nbr_vel = nbr[..., 3:6] + vel[..., None, :]
-    nbr_present = nbr[..., 6] > 0.5
-
-    def one(p, v, cc, cr, cv, cp, nq, nv, npres, w, gc, gn, gp, pc, pn, pp, g, u):
-        con = barrier_constraints(p, v, cc, cr, cv, cp, nq, nv, npres, g, drone_radius=drone_radius,
-                                  margin=margin)
-        wall = wall_constraints(w, g, drone_radius=drone_radius, margin=margin)
-        gates = [gate_constraints(p, c, nrm, present, g, half_opening=gate_half_opening, bar=gate_bar,
-                                  drone_radius=drone_radius, margin=margin)
-                 for c, nrm, present in ((gc, gn, gp), (pc, pn, pp))]
-        rows = [jnp.concatenate(x, 0) for x in zip(con, wall, *gates)]
-        return filter_velocity(u, rows[0], rows[1], rows[2], u_max, max_iter=max_iter)
+    def one(o, g, u):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
+        A, b, mask, _ = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
+                                          gate_half_opening=gate_half_opening, gate_bar=gate_bar,
+                                          floor_z=safety.floor_z, neighbour_share=safety.neighbour_share)
+        return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol)
 
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
-    return fn(pos, vel, rel, cyl_radius, cyl[..., 3:5], cyl_present, nbr_pos, nbr_vel, nbr_present, walls,
-              gate_center, gate_normal, gate_present, prev_center, prev_normal, prev_present, gain, cmd)
+    return fn(obs, gain, cmd)

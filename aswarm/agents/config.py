@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from aswarm.core.safety import SafetyFilterConfig
+from aswarm.envs.config import EnvConfig
+
 METHODS = {
     "attention_cbf": "the full method: attention-CBF penalties and CBF safety filter with learned gains",
     "attention_penalty": "attention-CBF penalties, no safety filter",
@@ -54,13 +57,11 @@ class TrainConfig:
     # Multiplies the actor's Gaussian std (brax's var_scale): 1 starts at std 0.69 before the tanh.
     action_std_scale: float = 1.0
     penalty_max: float = 2.0  # at 10 the penalty saturated within 20 updates and froze progress
-    # Class-K gain range (1/s) of the safety filter. Above ~2/s a drone commanded at 2 m/s straight at a
-    # cylinder still hit it: the filter assumes velocity follows the command at once, the onboard
-    # controller takes ~0.25 s (tests/test_safety_filter_env.py).
-    gain_min: float = 0.3
-    gain_max: float = 2.0
-    fixed_gain: float = 1.5  # fixed_cbf
-    filter_margin: float = 0.1  # m, kept on top of the collision distance by the filter
+    # The CBF safety filter's margin, gain range (also the attention-CBF network's output range), fixed
+    # gain (fixed_cbf) and QP settings: used by training, evaluation and, through the export manifest,
+    # the flight runtime. Runs written before it had flat gain_min, gain_max, fixed_gain, filter_margin
+    # (core.safety.nest_legacy maps them).
+    safety_filter: SafetyFilterConfig = SafetyFilterConfig()
     # Training reward per second per m/s of the filter's correction ||u_safe - u_nom|| (methods with the
     # filter), so the policy learns to command what the filter lets through. Measured (README): filter
     # intervention 58 -> 27 % of drone-steps on `obstacles` and 71 -> 66 % on the race, success 99.6 -> 99.9 %
@@ -74,7 +75,11 @@ class TrainConfig:
     # Host loop.
     checkpoint_minutes: float = 5.0
     updates_per_chunk: int = 10
+    # The env a new run starts from: the scenario's preset with these (FIELD or nested cf.FIELD, value) pairs.
+    # A record once resolved: ``env`` holds the run's full environment, and a stored run loads it as stored
+    # (editing a preset must not change the env an old checkpoint is evaluated or exported on).
     env_overrides: tuple[tuple[str, object], ...] = ()
+    env: EnvConfig | None = None  # None: resolved from scenario and env_overrides in __post_init__
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -93,6 +98,9 @@ class TrainConfig:
                      "cbf_embed", "cbf_state_hidden"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid {name}={getattr(self, name)!r}: must be > 0")
+        for name in ("actor_hidden", "critic_hidden", "cbf_hidden"):  # a zero-width layer trains nothing
+            if any(not isinstance(w, int) or w <= 0 for w in getattr(self, name)):
+                raise ValueError(f"invalid {name}={getattr(self, name)!r}: allowed: layer widths > 0, e.g. 64,64")
         for name in ("actor_lr", "critic_lr", "cbf_lr", "clip", "max_grad_norm", "checkpoint_minutes",
                      "action_std_scale"):
             if getattr(self, name) <= 0:
@@ -103,8 +111,28 @@ class TrainConfig:
         if (self.num_envs * self.rollout_steps) % self.minibatches:
             raise ValueError(f"invalid minibatches={self.minibatches}: must divide num_envs * rollout_steps = "
                              f"{self.num_envs * self.rollout_steps}")
-        if not 0 < self.gain_min < self.gain_max:
-            raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
+        if not isinstance(self.safety_filter, SafetyFilterConfig):
+            raise ValueError(f"invalid safety_filter={self.safety_filter!r}: allowed: a SafetyFilterConfig")
+        self._resolve_env()
+
+    def _resolve_env(self) -> None:
+        """Fill ``env`` from the preset for a new run; check a given one against scenario and env_overrides."""
+        from aswarm import config_args
+        from aswarm.envs import registry
+
+        if self.env is None:
+            env = config_args.replace_fields(registry.preset(self.scenario), dict(self.env_overrides))
+            object.__setattr__(self, "env", env)
+            return
+        if not isinstance(self.env, EnvConfig):
+            raise ValueError(f"invalid env={self.env!r}: allowed: an EnvConfig")
+        if self.env.scenario != self.scenario:
+            raise ValueError(f"invalid env.scenario={self.env.scenario!r}: must equal scenario={self.scenario!r}")
+        # The record must agree with the env it produced (catches dataclasses.replace(config, env_overrides=...),
+        # which would otherwise keep the old env).
+        if config_args.replace_fields(self.env, dict(self.env_overrides)) != self.env:
+            raise ValueError(f"invalid env_overrides={self.env_overrides!r}: they disagree with env; allowed: "
+                             "env=None (resolved from the preset) or overrides the env holds")
 
     @property
     def num_epochs(self) -> int:

@@ -9,6 +9,7 @@ method, env settings) changes shapes or code and needs its own compile.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 
 import jax
@@ -24,6 +25,24 @@ VALUE_FIELDS: tuple[str, ...] = (
 )
 # The subset the attention-CBF network reads: it is rebuilt with traced bounds when any is swept.
 NETWORK_FIELDS: tuple[str, ...] = ("penalty_max", "gain_min", "gain_max")
+
+
+# Hyperparameters held in TrainConfig.safety_filter (swept under their field names there).
+SAFETY_FIELDS: tuple[str, ...] = ("gain_min", "gain_max")
+
+
+def value(config: TrainConfig, field: str):
+    """The config's value of hyperparameter ``field``."""
+    return getattr(config.safety_filter if field in SAFETY_FIELDS else config, field)
+
+
+def replaced(config: TrainConfig, values: Mapping) -> TrainConfig:
+    """``config`` with hyperparameters ``values`` ({field: value}) set."""
+    safety = {f: v for f, v in values.items() if f in SAFETY_FIELDS}
+    top = {f: v for f, v in values.items() if f not in SAFETY_FIELDS}
+    if safety:
+        top["safety_filter"] = dataclasses.replace(config.safety_filter, **safety)
+    return dataclasses.replace(config, **top)
 
 
 def check_fields(fields: Sequence[str]) -> tuple[str, ...]:
@@ -45,23 +64,23 @@ def check_values(fields: tuple[str, ...], values: Mapping | None) -> dict:
 
 def resolve(config: TrainConfig, values: Mapping) -> dict:
     """Every value field: the traced value where swept, else the config's Python float (the default numbers)."""
-    return {f: values[f] if f in values else getattr(config, f) for f in VALUE_FIELDS}
+    return {f: values[f] if f in values else value(config, f) for f in VALUE_FIELDS}
 
 
 def values_of(config: TrainConfig, fields: Sequence[str]) -> dict:
     """The ``hparams`` of one configuration: float32 scalars of ``fields``."""
-    return {f: jnp.asarray(getattr(config, f), jnp.float32) for f in check_fields(fields)}
+    return {f: jnp.asarray(value(config, f), jnp.float32) for f in check_fields(fields)}
 
 
 def stack(configs: Sequence[TrainConfig], fields: Sequence[str]) -> dict:
     """``{field: [K] float32}`` over ``configs``: the batched ``hparams`` for ``jax.vmap(init)``."""
     fields = check_fields(fields)
-    return {f: np.asarray([getattr(c, f) for c in configs], np.float32) for f in fields}
+    return {f: np.asarray([value(c, f) for c in configs], np.float32) for f in fields}
 
 
 def varying(configs: Sequence[TrainConfig]) -> tuple[str, ...]:
     """The value fields whose values differ between ``configs``."""
-    return tuple(f for f in VALUE_FIELDS if len({getattr(c, f) for c in configs}) > 1)
+    return tuple(f for f in VALUE_FIELDS if len({value(c, f) for c in configs}) > 1)
 
 
 def index(tree, i: int):

@@ -11,7 +11,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from aswarm.envs.swarm_env import ObsLayout
+from aswarm.core.layout import CYL, NBR, ObsLayout
 
 ACTIVATIONS = {"gelu": nn.gelu, "tanh": nn.tanh, "relu": nn.relu, "silu": nn.silu}
 
@@ -98,4 +98,4 @@ class AttentionCBF(nn.Module):
 def hazard_mask(layout: ObsLayout, raw_obs: jax.Array) -> jax.Array:
     """[..., M + n - 1] presence flags read from *raw* (unnormalized) observations."""
     _, cyl, nbr = layout.split(raw_obs)
-    return jnp.concatenate([cyl[..., -1], nbr[..., -1]], -1) > 0.5
+    return jnp.concatenate([CYL.present(cyl), NBR.present(nbr)], -1)

@@ -22,6 +22,7 @@ from aswarm import envs
 from aswarm.agents import cbf_filter, hparams, losses
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import Actor, AttentionCBF, CentralCritic, hazard_mask
+from aswarm.core.layout import OBS_NORM_CLIP
 
 
 class Transition(NamedTuple):
@@ -79,7 +80,8 @@ class Agent:
             cost_critic=CentralCritic(num_agents=n, hidden=config.critic_hidden),
             cbf=AttentionCBF(layout=env.obs_layout, embed=config.cbf_embed, hidden=config.cbf_hidden,
                              state_hidden=config.cbf_state_hidden, penalty_max=config.penalty_max,
-                             gain_min=config.gain_min, gain_max=config.gain_max),
+                             gain_min=config.safety_filter.gain_min,
+                             gain_max=config.safety_filter.gain_max),
             dist=NormalTanhDistribution(event_size=env.action_size, var_scale=config.action_std_scale),
         )
 
@@ -98,7 +100,7 @@ class Agent:
         }
 
     def normalize(self, obs_norm, obs: jax.Array) -> jax.Array:
-        return running_statistics.normalize(obs, obs_norm, max_abs_value=10.0)
+        return running_statistics.normalize(obs, obs_norm, max_abs_value=OBS_NORM_CLIP)
 
     def policy(self, params: dict, obs_norm, obs: jax.Array, key: jax.Array | None):
         """Velocity commands [.., n, 3] before the filter; stochastic with ``key``, the mean without.
@@ -125,10 +127,10 @@ class Agent:
         if self.config.uses_attention:
             gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
         else:
-            gain = jnp.full(cmd.shape[:-1], self.config.fixed_gain)
+            gain = jnp.full(cmd.shape[:-1], self.config.safety_filter.fixed_gain)
         ec = self.env.config
         res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
-                                         self.config.filter_margin, ec.gate_half_opening, ec.gate_bar)
+                                         self.config.safety_filter, ec.gate_half_opening, ec.gate_bar)
         return res.u, res.intervened, res.correction_norm
 
     def act(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:
@@ -138,7 +140,8 @@ class Agent:
 
 
 def make_env(config: TrainConfig) -> envs.SwarmEnv:
-    return envs.make(config.scenario, **dict(config.env_overrides))
+    """The run's own environment, as resolved when it started (``config.env``), not rebuilt from a preset."""
+    return envs.SwarmEnv(config.env)
 
 
 def make_optimizer(config: TrainConfig, h: dict | None = None) -> optax.GradientTransformation:

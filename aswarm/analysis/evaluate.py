@@ -22,6 +22,7 @@ from brax.training.acme import running_statistics
 from aswarm import config_args, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
+from aswarm.analysis.protocol import EVAL_SEED
 from aswarm.envs.collisions import KINDS
 from aswarm.training import checkpoint
 
@@ -29,6 +30,9 @@ PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "race"
 # Reports of the shipped policy go here (relative to the working directory), not into the package.
 PRETRAINED_REPORT_DIR = Path("runs") / "eval"
 COLLISION_KINDS = KINDS[1:]  # obstacle, drone, gate, floor, bounds
+# Most episodes evaluated at once: a vmapped world holds its whole MJX state, and a million episodes in one
+# program ran out of memory. Above the 1000 of the published tables, so their numbers come from one program.
+EVAL_BATCH = 4096
 
 
 def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -42,18 +46,21 @@ def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array):
+def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
+                     batch: int = EVAL_BATCH):
     """Run ``episodes`` worlds to their end with the deterministic, filtered policy.
 
-    Returns the metrics of each episode ([episodes] arrays) and per-step safety statistics.
+    Returns the metrics of each episode ([episodes] arrays) and per-step safety statistics. Episode i starts
+    from ``split(key, episodes)[i]``; at most ``batch`` worlds run at once (memory grows with them), so up to
+    ``batch`` episodes are one program, as they always were.
     """
     reset = jax.vmap(env.reset)
     step = jax.vmap(env.step)
 
-    def run(key):
-        state = reset(jax.random.split(key, episodes))
+    def run(keys):
+        state = reset(keys)
         recorded = jax.tree.map(jnp.zeros_like, state.metrics)
-        ended = jnp.zeros(episodes, bool)
+        ended = jnp.zeros(keys.shape[0], bool)
 
         def body(carry, _):
             s, rec, ended, interventions, flying = carry
@@ -69,17 +76,33 @@ def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episode
 
         init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()))
         (_, rec, ended, interventions, flying), _ = jax.lax.scan(body, init, None, length=env.config.max_steps)
-        return rec, ended, interventions / jnp.maximum(flying, 1.0)
+        return rec, ended, interventions, flying
 
-    return jax.jit(run)(key)
+    if batch <= 0:
+        raise ValueError(f"invalid batch={batch}: must be > 0")
+    if episodes <= batch:
+        def one(key):
+            rec, ended, interventions, flying = run(jax.random.split(key, episodes))
+            return rec, ended, interventions / jnp.maximum(flying, 1.0)
+
+        return jax.jit(one)(key)
+    keys = jax.random.split(key, episodes)
+    run_batch = jax.jit(run)
+    parts = [run_batch(keys[i:i + batch]) for i in range(0, episodes, batch)]
+    rec = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[p[0] for p in parts])
+    ended = np.concatenate([np.asarray(p[1]) for p in parts])
+    # Counts summed in float64 on the host: float32 stops counting drone-steps exactly past 2**24.
+    interventions = sum(float(p[2]) for p in parts)
+    flying = sum(float(p[3]) for p in parts)
+    return rec, ended, interventions / max(flying, 1.0)
 
 
 def load(checkpoint_dir: str | Path):
     """(config, {params, obs_norm, update}) of a run folder or 'pretrained'."""
     run_dir = PRETRAINED if str(checkpoint_dir) == "pretrained" else Path(checkpoint_dir)
     if run_dir == PRETRAINED and not run_dir.exists():
-        raise checkpoint.CheckpointError("no pretrained policy ships yet (the race does not train to a useful "
-                                         "policy yet, see README): give a run folder from `aswarm train`")
+        raise checkpoint.CheckpointError("the pretrained policy is missing from this install (it ships in "
+                                         "aswarm/pretrained/race): give a run folder from `aswarm train`")
     if not run_dir.exists():
         raise checkpoint.CheckpointError(f"checkpoint {checkpoint_dir!s} does not exist: give a run folder or "
                                          "'pretrained'")
@@ -90,21 +113,29 @@ def load(checkpoint_dir: str | Path):
     like = {"params": jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), shapes),
             "obs_norm": running_statistics.init_state(jax.ShapeDtypeStruct((agent.env.observation_size,), jnp.float32)),
             "update": jnp.zeros((), jnp.int32)}
-    return config, checkpoint.restore(checkpoint.manager(run_dir), like, item="policy")
+    mngr = checkpoint.manager(run_dir, fingerprint=checkpoint.fingerprint(config, agent.env))
+    return config, checkpoint.restore(mngr, like, item="policy")
 
 
 def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
                env_overrides: list[str] | None = None) -> tuple[TrainConfig, Agent, dict]:
     """(config, agent on the evaluation env, {params, obs_norm, update}) of a checkpoint.
 
-    The evaluation env is the training env with ``scenario`` and ``env_overrides`` ("FIELD=VALUE") applied;
-    a ValueError says why when the networks cannot run on it.
+    The evaluation env is the training env as the run stored it (``config.env``) with ``env_overrides``
+    ("FIELD=VALUE", nested ones dotted: "cf.mass=0.03") applied; another ``scenario`` starts from that
+    scenario's preset (the only description of its course) with the run's and these overrides. A ValueError
+    says why when the networks cannot run on it.
     """
     config, restored = load(checkpoint_dir)
-    overrides = dict(config.env_overrides)
-    overrides.update(config_args.parse_assignments(env_overrides or [], envs.EnvConfig))
-    env = envs.make(scenario or config.scenario, **overrides)
-    trained = envs.make(config.scenario, **dict(config.env_overrides))
+    extra = config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
+    trained = envs.SwarmEnv(config.env)
+    if scenario is None or scenario == config.scenario:
+        env_config = config_args.replace_fields(config.env, extra)
+    else:
+        from aswarm.envs import registry
+
+        env_config = config_args.replace_fields(registry.preset(scenario), {**dict(config.env_overrides), **extra})
+    env = trained if env_config == config.env else envs.SwarmEnv(env_config)
     # The actor and the filter run per drone on its own observation row, so a policy flies any number of drones
     # whose rows have its layout (max_neighbours fixes the neighbour rows); the centralized critics, which do
     # depend on the number of drones, are not used here.
@@ -147,7 +178,7 @@ def summarize(rec: dict, intervention_rate: float = 0.0) -> dict:
     return out
 
 
-def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: int = 1000, seed: int = 10_000,
+def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: int = 1000, seed: int = EVAL_SEED,
                         env_overrides: list[str] | None = None, with_method: str | None = None) -> dict:
     """Evaluate a checkpoint; ``with_method`` runs its networks as another method would (e.g. a policy trained
     without a safety layer under ``fixed_cbf``'s filter): every method has the same parameter tree."""

@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from aswarm.core import geometry as geo
+from aswarm.core.layout import NBR
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.presets import SCENARIOS
@@ -74,10 +76,11 @@ def observed_neighbours(env, pos: jax.Array, obs: jax.Array) -> tuple[jax.Array,
     Read from the observation, so it holds for every neighbour mode (all in index order, or the K nearest)."""
     r = env.config.cf.collision_radius
     nbr = env.obs_layout.split(obs)[2]  # [n, K, 7]
-    present = nbr[..., 6] > 0.5
-    gap = jnp.where(present, jnp.linalg.norm(nbr[..., :3], axis=-1) - 2 * r, jnp.nan)
+    present = NBR.present(nbr)
+    rel = NBR.get(nbr, "rel_pos")
+    gap = jnp.where(present, jnp.linalg.norm(rel, axis=-1) - 2 * r, jnp.nan)
     # The neighbour is the drone at the observed offset (to float round-off): the nearest one to that point.
-    seen = pos[:, None] + nbr[..., :3]  # [n, K, 3]
+    seen = pos[:, None] + rel  # [n, K, 3]
     index = jnp.argmin(jnp.linalg.norm(seen[:, :, None] - pos[None, None], axis=-1), axis=-1)
     return gap, jnp.where(present, index, -1)
 
@@ -96,7 +99,7 @@ def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode
         ds = drone_state(s.data, n)
         cyl, _ = cylinders_at(s.layout, s.data.time)
         lay = s.layout
-        clear = col.cylinder_clearance(ds.pos, cyl, lay.cyl_radius, lay.cyl_height, lay.cyl_present, r)
+        clear = geo.cylinder_clearance(ds.pos, cyl, lay.cyl_radius, lay.cyl_height, lay.cyl_present, r)
         gap, index = observed_neighbours(env, ds.pos, s.obs)
         att = agent.cbf_params(params, obs_norm, s.obs)[1] if with_attention else jnp.zeros(())
         tr = s.tracker

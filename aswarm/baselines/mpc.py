@@ -65,6 +65,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.core.layout import CYL, NBR
 from aswarm.envs.swarm_env import SwarmEnv
 
 
@@ -225,7 +227,8 @@ def frame_distance(s: jax.Array, lat: jax.Array, vert: jax.Array, half_opening: 
     ``s`` along the passage direction, ``lat`` sideways and ``vert`` up, from the centre of the opening;
     ``height`` is the centre's height above the floor. The frame is the square of centre-line half-size
     ``half_opening + bar / 2`` in the plane s = 0 and the post from its bottom edge down to the floor,
-    as :func:`aswarm.envs.collisions.gate_frames` builds it; the cheaper closed form of the same distance.
+    as :func:`aswarm.core.geometry.gate_frames` builds it; the cheaper closed form of the same distance, for
+    the rollouts' inner loop (``tests/test_mpc.py`` pins it to ``gate_frames`` and ``point_segment_distance``).
     """
     c = half_opening + bar / 2
     al, av = jnp.abs(lat), jnp.abs(vert)
@@ -269,13 +272,14 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
         z0 = own[own_sl["altitude"]][0]
         here = jnp.array([0.0, 0.0, 1.0]) * z0
         vel = own[own_sl["vel"]]
-        cyl_xy, gap = cyl[:, 0:2], cyl[:, 2]
+        cyl_xy, gap = CYL.get(cyl, "rel_xy"), CYL.get(cyl, "clearance")
         return _Scene(
             z0=z0, vel=vel, acc_xy=_tilt_acceleration(own[own_sl["quat"]], cfg.cf.gravity),
             target=here - own[own_sl["target_rel"]], normal=own[own_sl["target_normal"]],
-            next_target=here - own[own_sl["next_target_rel"]], cyl_xy=cyl_xy, cyl_vel=cyl[:, 3:5],
-            cyl_reach=jnp.linalg.norm(cyl_xy, axis=-1) - gap, cyl_present=cyl[:, 5] > 0.5,
-            nbr_pos=nbr[:, 0:3] + here, nbr_vel=nbr[:, 3:6] + vel, nbr_present=nbr[:, 6] > 0.5,
+            next_target=here - own[own_sl["next_target_rel"]], cyl_xy=cyl_xy, cyl_vel=CYL.get(cyl, "vel_xy"),
+            cyl_reach=jnp.linalg.norm(cyl_xy, axis=-1) - gap, cyl_present=CYL.present(cyl),
+            nbr_pos=NBR.get(nbr, "rel_pos") + here, nbr_vel=NBR.get(nbr, "rel_vel") + vel,
+            nbr_present=NBR.present(nbr),
             passed_centre=passed_gate[0:3] + here, passed_normal=passed_gate[3:6], passed_valid=passed_gate[6] > 0.5,
         )
 
@@ -505,7 +509,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("--scenario", default="race")
     p.add_argument("--episodes", type=int, default=64)
-    p.add_argument("--seed", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=EVAL_SEED)
     p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE", help="EnvConfig override")
     p.add_argument("--mpc", action="append", default=[], metavar="FIELD=VALUE", help="MPCConfig override")
     p.add_argument("--bench", action="store_true", help="also time one control step at 256 worlds")

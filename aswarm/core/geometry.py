@@ -15,6 +15,8 @@ from types import ModuleType
 
 import numpy as np
 
+from aswarm.core.numpy_namespace import NUMPY
+
 # Clearance reported for what is absent (an obstacle that does not exist this episode, a drone that left).
 FAR = 1e3
 # Segments of zero length are treated as points: |ab|^2 is floored here.
@@ -22,8 +24,11 @@ _MIN_SQ_LENGTH = 1e-12
 
 
 def namespace(*xs) -> ModuleType:
-    """The array namespace of the first argument that has one (numpy for Python scalars)."""
+    """The array namespace of the first argument that has one (numpy for Python scalars; for a numpy array,
+    numpy with cheaper calls that return the same arrays, :mod:`aswarm.core.numpy_namespace`)."""
     for x in xs:
+        if type(x) is np.ndarray:  # the flight runtime's, many times a control step: numpy with cheaper calls
+            return NUMPY
         get = getattr(x, "__array_namespace__", None)
         if get is not None:
             return get()

@@ -1,7 +1,9 @@
 """The observation layout, shared by the simulator and the flight side (no JAX here, no numpy needed).
 
 Each drone's row is ``[own | cylinders | neighbours]``; the tables give every field's size and
-meaning, and :class:`ObsLayout` where it lives.
+meaning, :class:`ObsLayout` where each group lives in a row, and :data:`OWN`, :data:`CYL`, :data:`NBR`
+where each field lives in its group's rows. Code reads fields by name only (``CYL.get(cyl, "clearance")``,
+``NBR.present(nbr)``), never by column number, so reordering or resizing a field is one edit of a table.
 """
 
 from __future__ import annotations
@@ -10,6 +12,9 @@ import dataclasses
 
 # target_dir is the offset over max(distance, this) (m): finite at the goal itself.
 MIN_TARGET_DIST = 1e-3
+# The policy sees observations normalised by running statistics and clipped to +-this (brax's
+# running_statistics.normalize max_abs_value), in training and in the flight runtime alike.
+OBS_NORM_CLIP = 10.0
 
 OWN_FIELDS = (
     ("target_rel", 3, "m, world: drone position minus its current gate centre or goal"),
@@ -37,15 +42,78 @@ NBR_FIELDS = (
 )
 
 
+# Presence flags are exactly 0 or 1 in the raw observation; tested against the midpoint so that no
+# round-off (float32, a normaliser's round trip) can flip one.
+PRESENT_THRESHOLD = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldGroup:
+    """Named columns of one field group's rows (the last axis of ``own`` [..., own_dim], ``cyl`` [..., M, 6]
+    or ``nbr`` [..., K, 7] as :meth:`ObsLayout.split` gives them). Works on numpy and JAX arrays alike."""
+
+    name: str
+    fields: tuple[tuple[str, int, str], ...]
+
+    def __post_init__(self) -> None:
+        # Every field's slice and column, built once: the flight runtime reads fields by name at every control
+        # step (not dataclass fields, so equality and hashing still see only the table).
+        slices, columns, off = {}, {}, 0
+        for field, size, _ in self.fields:
+            slices[field] = slice(off, off + size)
+            columns[field] = off if size == 1 else slices[field]
+            off += size
+        object.__setattr__(self, "_slices", slices)
+        object.__setattr__(self, "_columns", columns)
+
+    @property
+    def dim(self) -> int:
+        return sum(size for _, size, _ in self.fields)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _, _ in self.fields)
+
+    def _unknown(self, name: str) -> KeyError:
+        return KeyError(f"invalid {self.name} field {name!r}: allowed: {', '.join(self.names)}")
+
+    def slice(self, name: str) -> slice:
+        """Columns of field ``name`` (a slice, also for a field of one number)."""
+        try:
+            return self._slices[name]
+        except KeyError:
+            raise self._unknown(name) from None
+
+    def column(self, name: str) -> int | slice:
+        """Index of field ``name``: an int for a field of one number (reading it drops the axis), else a slice."""
+        try:
+            return self._columns[name]
+        except KeyError:
+            raise self._unknown(name) from None
+
+    def get(self, rows, name: str):
+        """Field ``name`` of ``rows`` [..., dim]: [..., size], or [...] for a field of one number."""
+        return rows[..., self.column(name)]
+
+    def present(self, rows):
+        """[...] bool: the presence flag of ``rows`` [..., dim] (cylinder and neighbour groups)."""
+        return self.get(rows, "present") > PRESENT_THRESHOLD
+
+
+OWN = FieldGroup("own", OWN_FIELDS)
+CYL = FieldGroup("cylinder", CYL_FIELDS)
+NBR = FieldGroup("neighbour", NBR_FIELDS)
+
+
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
     """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""
 
     num_cylinders: int
     num_neighbours: int
-    own_dim: int = sum(f[1] for f in OWN_FIELDS)
-    cyl_dim: int = sum(f[1] for f in CYL_FIELDS)
-    nbr_dim: int = sum(f[1] for f in NBR_FIELDS)
+    own_dim: int = OWN.dim
+    cyl_dim: int = CYL.dim
+    nbr_dim: int = NBR.dim
 
     @property
     def size(self) -> int:
@@ -53,11 +121,17 @@ class ObsLayout:
 
     @property
     def own_slices(self) -> dict[str, slice]:
-        out, off = {}, 0
-        for name, size, _ in OWN_FIELDS:
-            out[name] = slice(off, off + size)
-            off += size
-        return out
+        """Every own field's columns, as slices (also for a field of one number)."""
+        return {name: OWN.slice(name) for name in OWN.names}
+
+    @property
+    def presence_columns(self) -> tuple[int, ...]:
+        """Columns of a whole row holding the presence flags of the M cylinders, then of the neighbours."""
+        c, k = CYL.column("present"), NBR.column("present")
+        cyl0 = self.own_dim
+        nbr0 = cyl0 + self.num_cylinders * self.cyl_dim
+        return (tuple(cyl0 + i * self.cyl_dim + c for i in range(self.num_cylinders))
+                + tuple(nbr0 + i * self.nbr_dim + k for i in range(self.num_neighbours)))
 
     def split(self, obs):
         """Works on numpy and JAX arrays alike."""

@@ -22,6 +22,7 @@ from flax import struct
 from aswarm.envs import scene
 from aswarm.envs.crazyflie import CrazyflieParams
 from aswarm.envs.mjx_import import mjx
+from aswarm.envs.params import DroneParams
 
 
 @struct.dataclass
@@ -59,11 +60,17 @@ def set_drone_state(data: mjx.Data, s: DroneState) -> mjx.Data:
     return data.replace(qpos=qpos, qvel=qvel)
 
 
-def motor_wrench(rpm: jax.Array, cf: CrazyflieParams) -> jax.Array:
+def drone_params(cf: DroneParams | CrazyflieParams) -> DroneParams:
+    """``cf`` as data; a :class:`CrazyflieParams` is converted as ``EnvParams.from_config`` does."""
+    return cf if isinstance(cf, DroneParams) else DroneParams.from_crazyflie(cf)
+
+
+def motor_wrench(rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> jax.Array:
     """[n, 4] motor RPM -> [n, 4] body-frame [thrust, tau_x, tau_y, tau_z]."""
+    cf = drone_params(cf)
     rpm = jnp.clip(rpm, 0.0, cf.max_rpm)
     thrusts = cf.kf * rpm**2
-    return thrusts @ jnp.asarray(cf.mixer(), dtype=rpm.dtype).T
+    return thrusts @ jnp.asarray(cf.mixer, dtype=rpm.dtype).T
 
 
 def apply_wrench(data: mjx.Data, quat: jax.Array, wrench: jax.Array) -> mjx.Data:
@@ -76,11 +83,25 @@ def apply_wrench(data: mjx.Data, quat: jax.Array, wrench: jax.Array) -> mjx.Data
     return data.replace(xfrc_applied=xfrc)
 
 
-def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: CrazyflieParams) -> mjx.Data:
-    """One physics step with motor speeds ``rpm`` [n, 4] held constant."""
+def with_drone(model: mjx.Model, cf: DroneParams) -> mjx.Model:
+    """``model`` with every drone's mass and inertia from ``cf``, so they can be data (per world, per trial)
+    while MJX stays the physics of record. Each drone is a root body: its subtree mass is its own."""
+    n = model.nbody - 1  # body 0 is the world
+    mass = jnp.broadcast_to(jnp.asarray(cf.mass, model.body_mass.dtype), (n,))
+    body_mass = jnp.concatenate([model.body_mass[:1], mass])
+    body_inertia = jnp.concatenate(
+        [model.body_inertia[:1], jnp.broadcast_to(jnp.asarray(cf.inertia, model.body_inertia.dtype), (n, 3))])
+    subtree = jnp.concatenate([jnp.sum(mass, keepdims=True), mass])
+    return model.replace(body_mass=body_mass, body_inertia=body_inertia, body_subtreemass=subtree)
+
+
+def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> mjx.Data:
+    """One physics step with motor speeds ``rpm`` [n, 4] held constant; ``cf``'s mass and inertia replace
+    the model's (:func:`with_drone`)."""
+    cf = drone_params(cf)
     n = rpm.shape[0]
     quat = data.qpos.reshape(n, 7)[:, 3:]
-    return mjx.step(model, apply_wrench(data, quat, motor_wrench(rpm, cf)))
+    return mjx.step(with_drone(model, cf), apply_wrench(data, quat, motor_wrench(rpm, cf)))
 
 
 @functools.lru_cache(maxsize=32)

@@ -12,10 +12,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from aswarm.envs.crazyflie import CrazyflieParams
-from aswarm.envs.dynamics import DroneState, quat_to_rotmat
+from aswarm.envs.dynamics import DroneState, drone_params, quat_to_rotmat
+from aswarm.envs.params import DroneParams, GainParams
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,17 +38,23 @@ def _vee(m: jax.Array) -> jax.Array:
 def velocity_controller(
     state: DroneState,
     vel_cmd: jax.Array,
-    gains: ControllerGains,
-    cf: CrazyflieParams,
+    gains: GainParams | ControllerGains,
+    cf: DroneParams | CrazyflieParams,
     yaw_cmd: float | jax.Array = 0.0,
 ) -> jax.Array:
-    """Motor speeds [n, 4] (RPM) that track world-frame velocities ``vel_cmd`` [n, 3]."""
+    """Motor speeds [n, 4] (RPM) that track world-frame velocities ``vel_cmd`` [n, 3].
+
+    ``gains`` and ``cf`` are data (``EnvParams.gains``, ``EnvParams.cf``); the frozen config dataclasses are
+    converted as ``EnvParams.from_config`` does."""
+    cf = drone_params(cf)
+    if not isinstance(gains, GainParams):
+        gains = GainParams.from_gains(gains, cf.gravity)
     g = cf.gravity
     acc = jnp.concatenate(
         [gains.kp_vel_xy * (vel_cmd[:, :2] - state.vel[:, :2]), gains.kp_vel_z * (vel_cmd[:, 2:] - state.vel[:, 2:])],
         -1,
     )
-    max_h = g * np.tan(np.deg2rad(gains.max_tilt_deg))
+    max_h = gains.max_accel_xy
     h_norm = jnp.linalg.norm(acc[:, :2], axis=-1, keepdims=True)
     acc_xy = acc[:, :2] * jnp.minimum(1.0, max_h / jnp.maximum(h_norm, 1e-9))
     acc_z = jnp.clip(acc[:, 2:], -gains.max_sink_accel, gains.max_climb_accel)
@@ -64,15 +70,17 @@ def velocity_controller(
 
     err_mat = jnp.einsum("nji,njk->nik", rot_des, rot) - jnp.einsum("nji,njk->nik", rot, rot_des)
     e_rot = 0.5 * _vee(err_mat)  # body frame
-    k_att = jnp.array([gains.kp_att, gains.kp_att, gains.kp_att_yaw], force.dtype)
+    k_att = jnp.stack([gains.kp_att, gains.kp_att, gains.kp_att_yaw]).astype(force.dtype)
     rate_cmd = jnp.clip(-k_att * e_rot, -gains.max_rate, gains.max_rate)
 
-    inertia = jnp.asarray(cf.inertia, force.dtype)
+    inertia = cf.inertia.astype(force.dtype)
     w = state.ang_vel
-    torque = inertia * (gains.kp_rate * (rate_cmd - w)) + jnp.cross(w, inertia * w)
+    # (inertia kp_rate) first: XLA folded the constants' product so before the gains were data.
+    torque = (inertia * gains.kp_rate) * (rate_cmd - w) + jnp.cross(w, inertia * w)
     thrust = jnp.sum(force * rot[:, :, 2], -1, keepdims=True)  # projected on the current body z
 
     wrench = jnp.concatenate([thrust, torque], -1)
-    motor_thrust = wrench @ jnp.asarray(np.linalg.inv(cf.mixer()).T, force.dtype)
+    motor_thrust = wrench @ jnp.asarray(cf.inv_mixer, force.dtype).T
     motor_thrust = jnp.clip(motor_thrust, 0.0, cf.max_motor_thrust)
-    return jnp.sqrt(motor_thrust / cf.kf)
+    # Times the reciprocal: what XLA compiled the division by the constant kf into before kf was data.
+    return jnp.sqrt(motor_thrust * (1.0 / cf.kf))

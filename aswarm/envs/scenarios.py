@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from aswarm.core import geometry as core_geometry
 from aswarm.envs.config import EnvConfig
 from aswarm.envs.presets import SCENARIOS
 
@@ -41,11 +42,9 @@ class Layout:
 
 
 def cylinders_at(layout: Layout, t: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Cylinder centres [M, 2] and velocities [M, 2] at time ``t``."""
-    arg = layout.cyl_omega * t + layout.cyl_phase
-    pos = layout.cyl_center + layout.cyl_axis * (layout.cyl_amplitude * jnp.sin(arg))[:, None]
-    vel = layout.cyl_axis * (layout.cyl_amplitude * layout.cyl_omega * jnp.cos(arg))[:, None]
-    return pos, vel
+    """Cylinder centres [M, 2] and velocities [M, 2] at time ``t`` (:func:`aswarm.core.geometry.cylinders_at`)."""
+    return core_geometry.cylinders_at(layout.cyl_center, layout.cyl_axis, layout.cyl_amplitude, layout.cyl_omega,
+                                      layout.cyl_phase, t)
 
 
 class Geometry(NamedTuple):

@@ -1,4 +1,8 @@
-"""The swarm environment: pure ``reset(key)`` and ``step(state, action)``.
+"""The swarm environment: pure ``reset(key, params=None)`` and ``step(state, action)``.
+
+``EnvConfig`` fixes the shapes and the program; ``EnvParams`` (``params.py``: physical constants, controller
+gains, reward weights, margin, speed limit, obstacle motion) are data that ``reset`` stores in the state and
+``step`` reads, so one compiled program serves many values (vmap ``reset`` over a batch of params).
 
 One env step (``1 / policy_freq`` s) holds the velocity command, runs the
 onboard controller at ``ctrl_freq`` and MJX physics at ``sim_freq`` inside
@@ -17,19 +21,18 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from aswarm.core import geometry as geo
 from aswarm.core.layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
 from aswarm.envs.config import EnvConfig
 from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
 from aswarm.envs.mjx_import import mjx
 from aswarm.envs.onboard_controller import velocity_controller
+from aswarm.envs.params import EnvParams
+from aswarm.envs.params import check as check_params
 from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.scenarios import Layout, cylinders_at, geometry, sample_layout
-
-
-def _horizontal(yaw: jax.Array) -> jax.Array:
-    """[...] yaw -> [..., 3] horizontal unit vectors (a gate's direction of passage)."""
-    return jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)], -1)
 
 
 @struct.dataclass
@@ -63,17 +66,11 @@ class State:
     tracker: Tracker
     metrics: dict
     info: dict
-
-
-def nearest_rows(nbr: jax.Array, present: jax.Array, k: int) -> jax.Array:
-    """Neighbour rows [n, n-1, D] (relative position first) -> the ``k`` nearest present ones, nearest first,
-    then absent (zero) rows: [n, k, D]. Ties keep index order."""
-    n, m = present.shape
-    dist = jnp.where(present, jnp.linalg.norm(nbr[..., :3], axis=-1), jnp.inf)
-    order = jnp.argsort(dist, axis=-1, stable=True)[:, :k]
-    rows = jnp.take_along_axis(nbr, order[..., None], axis=1)
-    rows = jnp.where(jnp.take_along_axis(present, order, axis=1)[..., None], rows, 0.0)
-    return jnp.concatenate([rows, jnp.zeros((n, max(k - m, 0), nbr.shape[-1]), nbr.dtype)], axis=1)
+    # What step reads that may vary per world (reset stores them; auto-reset keeps them). None: the config's
+    # defaults, read as constants compiled into the program, as before they were data: XLA folds and reorders
+    # constant arithmetic (reciprocals, products of gains), so they give other last bits than the same values
+    # as data; None keeps the numbers of every run and checkpoint made before this split.
+    params: EnvParams | None
 
 
 class SwarmEnv:
@@ -89,7 +86,7 @@ class SwarmEnv:
         self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=config.max_neighbours or n - 1)
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
-        self._others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
+        self.default_params = EnvParams.from_config(config)
 
     # Sizes, as MuJoCo Playground names them.
     @property
@@ -113,10 +110,19 @@ class SwarmEnv:
         return self.config.num_gates if self.kind == "track" else 1
 
     # ------------------------------------------------------------------ reset
-    def reset(self, key: jax.Array) -> State:
+    def reset(self, key: jax.Array, params: EnvParams | None = None) -> State:
+        """A new episode; ``params`` (None: the config's, ``default_params``, compiled in) are kept in the state
+        for ``step``. vmap over both ``key`` and ``params`` to run one compiled program for many values."""
         cfg = self.config
         n = cfg.num_agents
+        if params is not None:
+            params = check_params(params, self.default_params)
+        p = self.params(params)
         layout = sample_layout(key, cfg, self.geometry)
+        # Cylinder motion is data: the layout's moving cylinders take the params' amplitude and frequency.
+        static = np.arange(cfg.num_cylinders) < cfg.num_obstacles
+        layout = layout.replace(cyl_amplitude=jnp.where(static, 0.0, p.moving_amplitude),
+                                cyl_omega=jnp.where(static, 0.0, p.moving_omega))
         drones = DroneState(
             pos=layout.start_pos,
             quat=jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)),
@@ -127,14 +133,14 @@ class SwarmEnv:
         zeros = jnp.zeros(n)
         tracker = Tracker(
             target=jnp.zeros(n, jnp.int32), finished=jnp.zeros(n, bool), collided=jnp.zeros(n, bool),
-            collision_kind=jnp.zeros(n, jnp.int32), min_clearance=jnp.full(n, col.FAR, jnp.float32),
+            collision_kind=jnp.zeros(n, jnp.int32), min_clearance=jnp.full(n, geo.FAR, jnp.float32),
             separation_sum=zeros, speed_sum=zeros, finish_time=zeros, episode_return=zeros,
             steps=jnp.zeros((), jnp.int32),
         )
         obs = self._observe(drones, layout, tracker, jnp.zeros(()))
         state = State(data=data, obs=obs, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
                       done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
-                      metrics={}, info={})
+                      metrics={}, info={}, params=params)
         return state.replace(metrics=self._metrics(tracker))
 
     # ------------------------------------------------------------------- step
@@ -144,29 +150,30 @@ class SwarmEnv:
         n = cfg.num_agents
         self.check_action(action)
         # Inside jit a NaN cannot raise; a NaN command becomes a hover command.
-        cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -cfg.max_speed, cfg.max_speed)
+        p = self.params(state.params)
+        cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -p.max_speed, p.max_speed)
         tr0 = state.tracker
         active0 = self.flying(state)
         cmd = jnp.where(active0[:, None], cmd, 0.0)
         layout = state.layout
-        frames = col.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
+        frames = geo.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
         p0 = drone_state(state.data, n).pos
 
         def control(carry, _):
             data, tr, hazard = carry
-            rpm = velocity_controller(drone_state(data, n), cmd, cfg.gains, cfg.cf)
+            rpm = velocity_controller(drone_state(data, n), cmd, p.gains, p.cf)
 
             def inner(c, _):
                 d, t, h = c
                 prev = drone_state(d, n).pos
-                d = physics_step(self.mjx_model, d, rpm, cfg.cf)
+                d = physics_step(self.mjx_model, d, rpm, p.cf)
                 t, hz = self._check(prev, drone_state(d, n).pos, d.time, layout, frames, t)
                 return (d, t, jnp.minimum(h, hz)), None
 
             return jax.lax.scan(inner, (data, tr, hazard), None, length=cfg.ctrl_every)[0], None
 
         (data, tr, hazard), _ = jax.lax.scan(
-            control, (state.data, tr0, jnp.full(n, col.FAR)), None, length=cfg.substeps // cfg.ctrl_every
+            control, (state.data, tr0, jnp.full(n, geo.FAR)), None, length=cfg.substeps // cfg.ctrl_every
         )
 
         drones = drone_state(data, n)
@@ -178,19 +185,20 @@ class SwarmEnv:
         # Reward, per drone flying at the start of the step.
         if cfg.reward == "paper":
             d = jnp.linalg.norm(drones.pos - self._target_pos(layout, tr.target), axis=-1)
-            reward = 1.0 / (d + cfg.paper_epsilon)
+            reward = 1.0 / (d + p.paper_epsilon)
         else:
-            progress = self._to_go(p0, layout, tr0.target) - self._to_go(drones.pos, layout, tr0.target)
-            reward = (cfg.progress_weight * progress + cfg.gate_bonus * passed
-                      + cfg.finish_bonus * newly_finished - cfg.time_penalty * cfg.dt)
-        reward = jnp.where(newly_collided, -cfg.collision_penalty, reward)
+            progress = self._to_go(p0, layout, tr0.target, p) - self._to_go(drones.pos, layout, tr0.target, p)
+            reward = (p.progress_weight * progress + p.gate_bonus * passed
+                      + p.finish_bonus * newly_finished - p.time_penalty_per_step)
+        reward = jnp.where(newly_collided, -p.collision_penalty, reward)
         reward = jnp.where(active0, reward, 0.0)
-        cost = jnp.clip((cfg.safety_margin - hazard) / cfg.safety_margin, 0.0, 1.0)
+        # Times the reciprocal: what XLA compiled the division by the constant margin into before it was data.
+        cost = jnp.clip((p.safety_margin - hazard) * (1.0 / p.safety_margin), 0.0, 1.0)
         cost = jnp.where(active0, jnp.where(tr.collided, 1.0, cost), 0.0)
 
         # Episode statistics.
         speed = jnp.linalg.norm(drones.vel, axis=-1)
-        nearest = jnp.min(col.drone_clearance(drones.pos, jnp.ones(n, bool), 0.0), axis=-1, initial=col.FAR)
+        nearest = jnp.min(geo.drone_clearance(drones.pos, jnp.ones(n, bool), 0.0), axis=-1, initial=geo.FAR)
         tr = tr.replace(
             separation_sum=tr.separation_sum + jnp.where(n > 1, nearest, 0.0),
             speed_sum=tr.speed_sum + jnp.where(active0, speed, 0.0),
@@ -208,6 +216,10 @@ class SwarmEnv:
         )
 
     # --------------------------------------------------------------- helpers
+    def params(self, params: EnvParams | None) -> EnvParams:
+        """The parameters a state's ``params`` stand for: ``default_params`` where None."""
+        return self.default_params if params is None else params
+
     def flying(self, state: State) -> jax.Array:
         """[..., n] bool: drones not finished and released (staggered track starts); the others hover and
         earn neither reward nor cost. Works on a batch of states too."""
@@ -226,7 +238,8 @@ class SwarmEnv:
         k = jnp.minimum(target, self.num_waypoints - 1)
         return jnp.take_along_axis(layout.waypoints, k[:, None, None], axis=1)[:, 0]
 
-    def _to_go(self, pos: jax.Array, layout: Layout, target: jax.Array) -> jax.Array:
+    def _to_go(self, pos: jax.Array, layout: Layout, target: jax.Array,
+                params: EnvParams | None = None) -> jax.Array:
         """[n] distance left to each drone's waypoint ``target`` (m).
 
         Goals: the distance. Gates: ``|along| + lateral_weight * off_axis + wrong_side_weight * past``, in
@@ -240,7 +253,8 @@ class SwarmEnv:
         along = rel[:, 0] * jnp.cos(yaw) + rel[:, 1] * jnp.sin(yaw)
         side = -rel[:, 0] * jnp.sin(yaw) + rel[:, 1] * jnp.cos(yaw)
         off_axis = jnp.sqrt(side**2 + rel[:, 2] ** 2 + 1e-12)
-        return jnp.abs(along) + cfg.lateral_weight * off_axis + cfg.wrong_side_weight * jnp.maximum(along, 0.0)
+        params = self.params(params)
+        return jnp.abs(along) + params.lateral_weight * off_axis + params.wrong_side_weight * jnp.maximum(along, 0.0)
 
     def _check(self, prev, pos, t, layout: Layout, frames, tr: Tracker):
         """Advance waypoints and detect collisions after one physics step."""
@@ -249,7 +263,8 @@ class SwarmEnv:
         active = ~tr.finished
         if self.kind == "track":
             k = jnp.minimum(tr.target, cfg.num_gates - 1)
-            crossed = col.gate_crossed(prev, pos, layout.gate_pos[k], layout.gate_yaw[k], cfg.gate_half_opening)
+            crossed = geo.gate_crossed(prev, pos, layout.gate_pos[k], geo.horizontal(layout.gate_yaw[k]),
+                                       cfg.gate_half_opening)
             target = tr.target + (crossed & active)
             reached = target >= cfg.num_gates
         else:
@@ -258,12 +273,12 @@ class SwarmEnv:
         finished = tr.finished | (reached & active)
 
         cyl_pos, _ = cylinders_at(layout, t)
-        c_cyl = jnp.min(col.cylinder_clearance(pos, cyl_pos, layout.cyl_radius, layout.cyl_height,
-                                               layout.cyl_present, r), -1, initial=col.FAR)
-        c_drone = jnp.min(col.drone_clearance(pos, active, r), -1, initial=col.FAR)
-        c_gate = jnp.min(col.gate_clearance(pos, frames, cfg.gate_bar, r), -1, initial=col.FAR)
+        c_cyl = jnp.min(geo.cylinder_clearance(pos, cyl_pos, layout.cyl_radius, layout.cyl_height,
+                                               layout.cyl_present, r), -1, initial=geo.FAR)
+        c_drone = jnp.min(geo.drone_clearance(pos, active, r), -1, initial=geo.FAR)
+        c_gate = jnp.min(geo.gate_clearance(pos, frames, cfg.gate_bar, r), -1, initial=geo.FAR)
         c_floor = pos[:, 2] - r
-        oob = col.out_of_bounds(pos, cfg.arena_low, cfg.arena_high)
+        oob = geo.out_of_bounds(pos, cfg.arena_low, cfg.arena_high)
         gaps = jnp.stack([c_cyl, c_drone, c_gate, c_floor], -1)
         hit = jnp.concatenate([gaps < 0, oob[:, None]], -1) & active[:, None]
         kind = jnp.where(jnp.any(hit, -1), jnp.argmax(hit, -1) + 1, col.NONE)
@@ -274,49 +289,19 @@ class SwarmEnv:
             collision_kind=jnp.where(new, kind, tr.collision_kind),
             min_clearance=jnp.where(active, jnp.minimum(tr.min_clearance, c_cyl), tr.min_clearance),
         )
-        return tr, jnp.where(active, jnp.min(gaps, -1), col.FAR)
+        return tr, jnp.where(active, jnp.min(gaps, -1), geo.FAR)
 
     def _observe(self, drones: DroneState, layout: Layout, tr: Tracker, t) -> jax.Array:
+        """Every drone's observation [n, D] (:func:`aswarm.core.observation.observe`, as the flight runtime's)."""
         cfg = self.config
-        n = cfg.num_agents
-        r = cfg.cf.collision_radius
-        k = jnp.minimum(tr.target, self.num_waypoints - 1)
-        target = self._target_pos(layout, k)
-        nxt = self._target_pos(layout, k + 1)
         if self.kind == "track":
-            normal = _horizontal(layout.gate_yaw[k])
-            # The gate just passed stays in view: a drone turning towards the next gate right after the
-            # plane can still clip this frame from behind (it did, at low filter gains, see README).
-            kp = jnp.maximum(tr.target - 1, 0)
-            has_prev = (tr.target >= 1)[:, None]
-            prev_rel = jnp.where(has_prev, drones.pos - layout.gate_pos[kp], 0.0)
-            prev_normal = jnp.where(has_prev, _horizontal(layout.gate_yaw[kp]), 0.0)
-        else:
-            normal = prev_rel = prev_normal = jnp.zeros((n, 3))
-        to_target = target - drones.pos
-        direction = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), MIN_TARGET_DIST)
-        low, high = jnp.asarray(cfg.arena_low), jnp.asarray(cfg.arena_high)
-        walls = jnp.stack([drones.pos[:, 0] - low[0], high[0] - drones.pos[:, 0], drones.pos[:, 1] - low[1],
-                           high[1] - drones.pos[:, 1], high[2] - drones.pos[:, 2]], -1)
-        own = jnp.concatenate([drones.pos - target, normal, drones.pos - nxt, direction, prev_rel, prev_normal,
-                               drones.pos[:, 2:], drones.quat, drones.vel, drones.ang_vel, walls], -1)
-
+            normals = jnp.broadcast_to(geo.horizontal(layout.gate_yaw), layout.waypoints.shape)
+        else:  # goals have no direction of passage
+            normals = jnp.zeros_like(layout.waypoints)
         cyl_pos, cyl_vel = cylinders_at(layout, t)
-        rel = cyl_pos[None] - drones.pos[:, None, :2]  # [n, M, 2]
-        gap = jnp.linalg.norm(rel, axis=-1) - layout.cyl_radius[None] - r
-        present = jnp.broadcast_to(layout.cyl_present[None], gap.shape)
-        cyl = jnp.concatenate([rel, gap[..., None], jnp.broadcast_to(cyl_vel[None], rel.shape),
-                               jnp.ones_like(gap)[..., None]], -1)
-        cyl = jnp.where(present[..., None], cyl, 0.0)
-
-        flying = ~tr.finished
-        others = self._others
-        nbr = jnp.concatenate([drones.pos[others] - drones.pos[:, None], drones.vel[others] - drones.vel[:, None],
-                               jnp.ones(others.shape + (1,))], -1)
-        nbr = jnp.where(flying[others][..., None], nbr, 0.0)
-        if cfg.max_neighbours:
-            nbr = nearest_rows(nbr, flying[others], cfg.max_neighbours)
-        return jnp.concatenate([own, cyl.reshape(n, -1), nbr.reshape(n, -1)], -1)
+        return observe(drones.pos, drones.quat, drones.vel, drones.ang_vel, layout.waypoints, normals, tr.target,
+                       ~tr.finished, cyl_pos, cyl_vel, layout.cyl_radius, layout.cyl_present,
+                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high, cfg.max_neighbours)
 
     def _metrics(self, tr: Tracker) -> dict:
         """Episode outcome so far; read it on the step where ``done`` is 1."""

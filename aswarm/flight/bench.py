@@ -87,7 +87,6 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
     est = estimator.init((n,))
     wp = np.broadcast_to(np.array(b.manifest["course"]["gates"])[None, :, :3], (n, 4, 3))
     normals = np.zeros_like(wp)
-    sf = b.safety_filter
     solved = []
     for k in range(steps):
         t = 0.02 * k
@@ -110,7 +109,7 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
         c3 = time.perf_counter()
         gain = policy.cbf_params(b.weights, b.layout, nobs, obs, gain_min=0.3, gain_max=2.0, penalty_max=2.0)[1]
         c4 = time.perf_counter()
-        res = filter_from_obs(b.layout, obs, cmd, gain, 2.0, 0.06, float(sf["margin"]), 0.3, 0.05)
+        res = filter_from_obs(b.layout, obs, cmd, gain, 2.0, 0.06, b.safety, 0.3, 0.05)
         c5 = time.perf_counter()
         solved.append(np.mean(res.intervened))
         for name, a, z in (("estimate", c0, c1), ("observe", c1, c2), ("actor", c2, c3), ("gain", c3, c4),

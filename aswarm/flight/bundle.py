@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from aswarm.core.layout import OBS_NORM_CLIP
+from aswarm.core.safety import SafetyFilterConfig, from_manifest
 from aswarm.flight.observe import ObsLayout
 from aswarm.flight.policy import PolicyWeights, weights_from_arrays
 
@@ -69,7 +71,8 @@ def make_manifest(*, scenario: str, kind: str, env: Mapping, env_overrides: Mapp
                    "low": -speed, "high": speed, "clip": "per axis",
                    "deterministic": "tanh(actor_out[:3]) * max_speed, then the safety filter"},
         "control": {"rate_hz": int(env["policy_freq"]), "period_s": 1.0 / int(env["policy_freq"])},
-        "normalizer": {"formula": "clip((obs - mean) / std, -max_abs_value, max_abs_value)", "max_abs_value": 10.0},
+        "normalizer": {"formula": "clip((obs - mean) / std, -max_abs_value, max_abs_value)",
+                       "max_abs_value": OBS_NORM_CLIP},
         "networks": dict(networks),
         "safety_filter": dict(safety_filter),
         "source": {"checkpoint": source, "trained_updates": int(trained_updates),
@@ -137,6 +140,7 @@ class Bundle:
     arrays: Mapping[str, np.ndarray]
     layout: ObsLayout
     weights: PolicyWeights
+    safety: SafetyFilterConfig  # the filter's settings, from the manifest's safety_filter entries
 
     @property
     def env(self) -> Mapping:
@@ -236,10 +240,14 @@ def bundle_from(manifest: Mapping, arrays: Mapping[str, np.ndarray], path: Path 
                           f" the observation has size {layout.size}")
     if np.any(weights.std <= 0):
         raise BundleError("obs_norm/std has entries <= 0: allowed: positive standard deviations")
+    try:
+        safety = from_manifest(manifest["safety_filter"])
+    except (TypeError, ValueError) as e:
+        raise BundleError(str(e)) from e
     frozen = {}
     for k, v in arrays.items():
         v = np.array(v)
         v.setflags(write=False)
         frozen[k] = v
     return Bundle(path=path, manifest=types.MappingProxyType(dict(manifest)), arrays=types.MappingProxyType(frozen),
-                  layout=layout, weights=weights)
+                  layout=layout, weights=weights, safety=safety)

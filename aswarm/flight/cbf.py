@@ -1,7 +1,8 @@
-"""The CBF safety filter in numpy: the same barriers and the same QP as ``aswarm.agents.cbf_filter``.
+"""The CBF safety filter in numpy: the rows of ``aswarm.core.barriers`` and the same QP as ``aswarm.agents.cbf_filter``.
 
-Barriers (one row ``a_j · u ≥ b_j`` per hazard, see the JAX module for their derivation), rows laid
-out ``[cylinders M | neighbours K | floor 1 | walls 5 | gate frame 5 | previous gate 5]``, and the QP
+Rows (one ``a_j · u ≥ b_j`` per hazard, built by :func:`aswarm.core.barriers.obs_rows`, shared with the
+JAX filter) are laid out ``[cylinders M | neighbours K | floor 1 | walls 5 | gate frame 5 | previous gate 5]``,
+and the QP is
 
     min_{u, s}  ||u − u_nom||² + ρ s²
     s.t.        â_j · u + s ≥ b̂_j   (present rows, normalised to ||â_j|| = 1)
@@ -22,25 +23,11 @@ import math
 
 import numpy as np
 
-from aswarm.flight.observe import ObsLayout
+from aswarm.core import barriers
+from aswarm.core.layout import ObsLayout
+from aswarm.core.safety import SafetyFilterConfig
 
-_EPS = 1e-9
 _SLOTS = 4  # independent active rows in R^4 (velocity and scaled slack)
-
-
-@dataclasses.dataclass(frozen=True)
-class Rows:
-    """Linear CBF constraints ``A u ≥ b``: A [..., m, 3], b [..., m], mask [..., m] (present rows), h [..., m]."""
-
-    A: np.ndarray
-    b: np.ndarray
-    mask: np.ndarray
-    h: np.ndarray
-
-    @staticmethod
-    def concat(parts: list[Rows]) -> Rows:
-        return Rows(*(np.concatenate([getattr(p, f) for p in parts], -2 if f == "A" else -1)
-                      for f in ("A", "b", "mask", "h")))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,86 +37,6 @@ class FilterResult:
     intervened: np.ndarray  # [...] bool: u_nom violated a row or the box
     correction_norm: np.ndarray  # [...] ||u − u_nom||
     converged: np.ndarray  # [...] bool: the active-set steps finished within the budget
-
-
-def _unit(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(||d||, d/||d||) over the last axis; zero where d = 0."""
-    sq = np.sum(d * d, -1)
-    ok = sq > _EPS**2
-    dist = np.sqrt(np.where(ok, sq, 1.0))
-    return np.where(ok, dist, 0.0), np.where(ok[..., None], d / dist[..., None], 0.0)
-
-
-# ------------------------------------------------------------------ geometry
-def gate_frames(gate_pos: np.ndarray, gate_yaw: np.ndarray, half_opening: float, bar: float) -> np.ndarray:
-    """Segments [..., 5, 2, 3] of a gate's frame (4 edges and the post to the floor), as ``collisions.gate_frames``."""
-    c = half_opening + bar / 2
-    lat = np.stack([-np.sin(gate_yaw), np.cos(gate_yaw), np.zeros_like(gate_yaw)], -1)
-    up = np.array([0.0, 0.0, 1.0])
-    pts = np.stack([gate_pos + a * lat + b * up for a, b in ((-c, -c), (c, -c), (c, c), (-c, c))], -2)
-    edges = np.stack([pts, np.roll(pts, -1, axis=-2)], -2)  # [..., 4, 2, 3]
-    foot = gate_pos.copy()
-    foot[..., 2] = 0.0
-    post = np.stack([gate_pos - c * up, foot], -2)[..., None, :, :]
-    return np.concatenate([edges, post], -3)
-
-
-def closest_on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ab = b - a
-    t = np.clip(np.sum((p - a) * ab, -1) / np.maximum(np.sum(ab * ab, -1), 1e-12), 0.0, 1.0)
-    return a + t[..., None] * ab
-
-
-# ------------------------------------------------------------------ barriers
-def cylinder_constraints(pos, center, radius, vel, present, gamma, *, drone_radius: float,
-                         margin: float = 0.0) -> Rows:
-    """pos [..., 3]; center, vel [..., M, 2]; radius, present [..., M]; gamma [..., M] or broadcastable."""
-    dist, n_xy = _unit(pos[..., None, :2] - center)
-    h = dist - (radius + drone_radius + margin)
-    A = np.concatenate([n_xy, np.zeros_like(n_xy[..., :1])], -1)
-    return Rows(A, np.sum(n_xy * vel, -1) - gamma * h, present, h)
-
-
-def neighbour_constraints(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
-                          share: float = 0.5) -> Rows:
-    """pos, vel [..., 3]; nbr_pos, nbr_vel [..., K, 3]; present [..., K]; responsibility ``share`` of the pair."""
-    dist, n = _unit(pos[..., None, :] - nbr_pos)
-    h = dist - (2.0 * drone_radius + margin)
-    ref_vel = (1.0 - share) * vel[..., None, :] + share * nbr_vel
-    return Rows(n, np.sum(n * ref_vel, -1) - share * gamma * h, present, h)
-
-
-def floor_constraint(pos, gamma, *, z_min: float) -> Rows:
-    h = pos[..., 2:3] - z_min
-    A = np.broadcast_to(np.array([0.0, 0.0, 1.0]), h.shape + (3,))
-    return Rows(A, -gamma * h, np.ones(h.shape, bool), h)
-
-
-def gate_constraints(pos, gate_center, gate_normal, present, gamma, *, half_opening: float, bar: float,
-                     drone_radius: float, margin: float = 0.0) -> Rows:
-    """The 5 round bars of one gate's frame: pos, gate_center, gate_normal [..., 3]; present [...]; gamma [..., 1]."""
-    yaw = np.arctan2(gate_normal[..., 1], gate_normal[..., 0])
-    frames = gate_frames(gate_center, yaw, half_opening, bar)  # [..., 5, 2, 3]
-    p = pos[..., None, :]
-    dist, n = _unit(p - closest_on_segment(p, frames[..., 0, :], frames[..., 1, :]))
-    h = dist - (bar / 2 + drone_radius + margin)
-    return Rows(n, -gamma * h, np.broadcast_to(present[..., None], h.shape), h)
-
-
-def barrier_constraints(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present,
-                        gamma, *, drone_radius: float, margin: float = 0.0, floor_z: float = 0.0,
-                        neighbour_share: float = 0.5) -> Rows:
-    """Rows ``[cylinders M | neighbours K | floor 1]``; gamma [...] one gain per drone, or [..., M + K + 1]."""
-    M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
-    gamma = np.broadcast_to(np.asarray(gamma, float)[..., None] if np.ndim(gamma) == pos.ndim - 1 else gamma,
-                            pos.shape[:-1] + (M + K + 1,))
-    return Rows.concat([
-        cylinder_constraints(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, gamma[..., :M],
-                             drone_radius=drone_radius, margin=margin),
-        neighbour_constraints(pos, vel, nbr_pos, nbr_vel, nbr_present, gamma[..., M:M + K],
-                              drone_radius=drone_radius, margin=margin, share=neighbour_share),
-        floor_constraint(pos, gamma[..., M + K:], z_min=floor_z + drone_radius + margin),
-    ])
 
 
 # ------------------------------------------------------------------ the QP
@@ -508,9 +415,12 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
     u_nom = np.asarray(u_nom, np.float64)
     lead, m = u_nom.shape[:-1], A.shape[-2]
     P = math.prod(lead)
-    nrm, a_hat = _unit(np.asarray(A, np.float64).reshape(P, m, 3))
-    valid_rows = np.asarray(mask, bool).reshape(P, m) & (nrm > _EPS)
-    u_max = tuple(np.broadcast_to(np.asarray(u_max, float), (3,)).tolist())
+    nrm, a_hat = barriers.unit(np.asarray(A, np.float64).reshape(P, m, 3))
+    valid_rows = np.asarray(mask, bool).reshape(P, m) & (nrm > barriers.EPS)
+    if isinstance(u_max, (int, float)):  # the flight runtime's, every step (np.broadcast_to costs microseconds)
+        u_max = (float(u_max),) * 3
+    else:
+        u_max = tuple(np.broadcast_to(np.asarray(u_max, float), (3,)).tolist())
     G, h, valid = _qp_rows(P, m, u_max, float(rho))
     G[:, :m, :3] = a_hat
     h[:, :m] = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
@@ -525,138 +435,18 @@ def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
 
 
 # ------------------------------------------------------------------ from observations
-@functools.lru_cache(maxsize=32)
-def _obs_columns(layout: ObsLayout) -> tuple[slice, slice, slice, np.ndarray]:
-    """(altitude, velocity, wall clearances, [2, 6] columns of the current and the previous gate's (rel, normal))
-    in an own row."""
-    f = layout.own_slices
-    gates = np.array([np.r_[f["target_rel"], f["target_normal"]], np.r_[f["prev_gate_rel"], f["prev_gate_normal"]]])
-    return f["altitude"], f["vel"], f["wall_clearance"], gates
-
-
-# Rows after the point hazards: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
-_FIXED_ROWS = 1 + 5 + 10
-# Inward normals of the walls, in the order of the observation's wall_clearance (cbf_filter.WALL_NORMALS).
-WALL_NORMALS = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-WALL_NORMALS.setflags(write=False)
-
-
-@functools.lru_cache(maxsize=32)
-def _shares(M: int, K: int, share: float) -> np.ndarray:
-    """The share of a gap each drone closes, per row of filter_from_obs: ``share`` of a neighbour's, else all."""
-    out = np.concatenate([np.ones(M), np.full(K, share), np.ones(_FIXED_ROWS)])
-    out.setflags(write=False)
-    return out
-
-
 def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray, u_max: float,
-                    drone_radius: float, margin: float, gate_half_opening: float = 0.0, gate_bar: float = 0.0, *,
-                    rho: float = 1e6, max_iter: int = 16, tol: float = 1e-6, floor_z: float = 0.0,
-                    neighbour_share: float = 0.5) -> FilterResult:
+                    drone_radius: float, safety: SafetyFilterConfig, gate_half_opening: float = 0.0,
+                    gate_bar: float = 0.0) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]); gain [..., n].
 
-    As ``cbf_filter.filter_from_obs``: positions in a frame centred on the drone's horizontal
-    position with z its altitude; one gain per drone for all its rows; gate rows present when
-    ``gate_bar > 0`` and the observation has a gate (non-zero direction of passage). The rows are
-    those of :func:`barrier_constraints` and :func:`gate_constraints`, built here directly as unit
-    rows from the relative positions in the observation and written straight into the QP's arrays.
-
-    Every row is the same computation on different inputs: an offset d from the hazard to the
-    drone (its unit normal n = d / ||d||), a velocity of reference v, the share s of the gap this
-    drone closes and a barrier value h, giving n · u ≥ n · v − s γ h. So all rows are built in one
-    pass over arrays of all rows (numpy's cost is per operation, not per number, at these sizes):
-    a cylinder or neighbour is a point hazard, a gate bar's offset is to its closest point, the
-    floor is the row with d = (0, 0, 1), v = 0 and h = altitude − clearance, and a wall the row with d
-    its inward normal, v = 0 and h = the observed wall clearance − clearance.
+    As ``cbf_filter.filter_from_obs``: the rows of :func:`aswarm.core.barriers.obs_rows` (one gain per
+    drone for all its rows; gate rows present when ``gate_bar > 0`` and the observation has a gate),
+    margin, neighbour share, floor height and the QP's settings from ``safety``.
     """
-    lead = obs.shape[:-1]
-    P = math.prod(lead)
-    M, K = layout.num_cylinders, layout.num_neighbours
-    H = M + K  # point hazards
-    m = H + _FIXED_ROWS  # rows [cylinders M | neighbours K | floor 1 | walls 5 | gate 5 | previous gate 5], box
-    obs = np.asarray(obs, np.float64).reshape(P, -1)
-    own, cyl, nbr = layout.split(obs)
-    alt_col, vel_col, wall_col, gate_cols = _obs_columns(layout)
-    alt = own[:, alt_col]  # [P, 1]
-    gamma = np.asarray(gain, np.float64).reshape(P, 1)
-    u_max = (float(u_max),) * 3
-    G, h, valid = _qp_rows(P, m, u_max, float(rho))
-
-    d = np.zeros((P, m, 3))
-    np.negative(cyl[:, :, 0:2], out=d[:, :M, :2])  # the drone sits at (0, 0, alt)
-    np.negative(nbr[:, :, 0:3], out=d[:, M:H])
-    d[:, H, 2] = 1.0
-    d[:, H + 1:H + 6] = WALL_NORMALS
-    # The current gate's frame and the one passed last: 4 edges and the post each, as round bars.
-    gates = own[:, gate_cols]  # [P, 2, 6]
-    valid[:, H + 6:m] = _gate_offsets(gates[:, :, :3], gates[:, :, 3:], alt[:, 0], gate_half_opening, gate_bar,
-                                      d[:, H + 6:m].reshape(P, 2, 5, 3)).repeat(5, 1)
-    ref = np.zeros((P, m, 3))
-    ref[:, :M, :2] = cyl[:, :, 3:5]
-    ref[:, M:H] = own[:, None, vel_col] + neighbour_share * nbr[:, :, 3:6]
-
-    sq = (d * d).sum(-1)
-    ok = sq > _EPS**2
-    dist = np.sqrt(np.where(ok, sq, 1.0))
-    n = np.multiply(d, (ok / dist)[:, :, None], out=G[:, :m, :3])
-    hv = np.empty((P, m))
-    # A cylinder's h = ||p_xy − c|| − (R + r + margin) with R = ||rel|| − clearance − r: the clearance less the margin.
-    np.subtract(cyl[:, :, 2], margin, out=hv[:, :M])
-    np.subtract(dist[:, M:H], 2.0 * drone_radius + margin, out=hv[:, M:H])
-    np.subtract(alt, floor_z + drone_radius + margin, out=hv[:, H:H + 1])
-    np.subtract(own[:, wall_col], drone_radius + margin, out=hv[:, H + 1:H + 6])
-    np.subtract(dist[:, H + 6:], gate_bar / 2 + drone_radius + margin, out=hv[:, H + 6:])
-    sgh = _shares(M, K, neighbour_share) * gamma
-    sgh *= hv
-    np.subtract((n * ref).sum(-1), sgh, out=h[:, :m])
-    np.greater(cyl[:, :, 5], 0.5, out=valid[:, :M])
-    np.greater(nbr[:, :, 6], 0.5, out=valid[:, M:H])
-    valid[:, H:H + 6] = True
-    valid[:, :m] &= ok  # a row with no direction is ignored
-
-    res = _solve(np.asarray(cmd, np.float64).reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol)
-    return _reshape(res, lead)
-
-
-@functools.lru_cache(maxsize=32)
-def _bar_ends(c: float) -> np.ndarray:
-    """[10, 3]: where a gate's bars start (5 rows) and end (5 rows), as (lateral, lateral, up) offsets from its centre.
-
-    In units of (lat_x, lat_y, 1) with lat the gate's horizontal lateral direction: the 4 edges run
-    from corner to corner ((∓c, ±c) lateral and up), the post from the frame's bottom down to the floor
-    (its foot, the last row, is set to the floor by :func:`_gate_offsets`).
-    """
-    corners = [(-c, -c), (c, -c), (c, c), (-c, c)]  # (lateral, up)
-    starts = corners + [(0.0, -c)]
-    ends = corners[1:] + corners[:1] + [(0.0, 0.0)]
-    out = np.array([(lat, lat, up) for lat, up in starts + ends])
-    out.setflags(write=False)
-    return out
-
-
-def _gate_offsets(rel: np.ndarray, normal: np.ndarray, alt: np.ndarray, half_opening: float, bar: float,
-                  out: np.ndarray) -> np.ndarray:
-    """Offsets [P, g, 5, 3] (into ``out``) to the drone from the closest points of g gates' 5 bars each.
-
-    rel [P, g, 3] drone minus gate centre and normal [P, g, 3] as observed; the drone sits at (0, 0, alt)
-    (alt [P]). Returns [P, g] bool: a gate (a direction of passage) and bars (``bar`` > 0). All gates of
-    all drones in one pass: each operation costs the same for 1 or 2 gates.
-    """
-    P, ng = rel.shape[:2]
-    center = -rel
-    center[:, :, 2] += alt[:, None]
-    yaw = np.arctan2(normal[:, :, 1], normal[:, :, 0])
-    basis = np.empty((P, ng, 1, 3))  # (lat_x, lat_y, 1): lat = (-sin yaw, cos yaw, 0), and up
-    np.sin(yaw, out=basis[:, :, 0, 0])
-    np.negative(basis[:, :, 0, 0], out=basis[:, :, 0, 0])
-    np.cos(yaw, out=basis[:, :, 0, 1])
-    basis[:, :, 0, 2] = 1.0
-    ends = center[:, :, None, :] + _bar_ends(half_opening + bar / 2) * basis  # [P, g, 10, 3]
-    ends[:, :, 9, 2] = 0.0  # the post's foot
-    a, ab = ends[:, :, :5], ends[:, :, 5:] - ends[:, :, :5]  # segment starts, and start to end
-    pos = np.zeros((P, 1, 1, 3))
-    pos[:, 0, 0, 2] = alt
-    t = ((pos - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12)
-    t = np.minimum(np.maximum(t, 0.0), 1.0)  # clip to the segment
-    np.subtract(pos, a + t[..., None] * ab, out=out)
-    return (normal * normal).sum(-1) > 0.25 if bar > 0 else np.zeros((P, ng), bool)
+    obs = np.asarray(obs, np.float64)
+    rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
+                             margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
+                             floor_z=safety.floor_z, neighbour_share=safety.neighbour_share)
+    return filter_velocity(cmd, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
+                           tol=safety.tol)

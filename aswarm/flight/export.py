@@ -11,16 +11,15 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import inspect
 import json
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from aswarm.agents import cbf_filter
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import ACTIVATIONS
+from aswarm.core.safety import manifest_fields
 from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.swarm_env import SwarmEnv
 from aswarm.flight import bundle as fb
@@ -44,8 +43,11 @@ def policy_arrays(params: dict, obs_norm) -> dict[str, np.ndarray]:
 
 
 def config_json(config: TrainConfig, env: SwarmEnv) -> str:
-    """The training config as ``runner.write_config`` writes ``config.json`` (its sha256 goes in the manifest)."""
-    payload = {"train": dataclasses.asdict(config), "env": dataclasses.asdict(env.config)}
+    """The training config as ``runner.write_config`` writes ``config.json`` (its sha256 goes in the manifest),
+    with ``env``'s config as its env section."""
+    from aswarm.training import run_config
+
+    payload = {**run_config.payload(config), "env": dataclasses.asdict(env.config)}
     return json.dumps(payload, indent=2, default=str)
 
 
@@ -64,8 +66,6 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     agent = Agent.build(config, env)
     ec = env.config
     geo = env.geometry
-    fv = inspect.signature(cbf_filter.filter_velocity).parameters
-    bc = inspect.signature(cbf_filter.barrier_constraints).parameters
     env_fields = dict(num_agents=ec.num_agents, num_cylinders=ec.num_cylinders, num_gates=ec.num_gates,
                       max_neighbours=ec.max_neighbours,
                       max_speed=ec.max_speed, policy_freq=ec.policy_freq, collision_radius=ec.cf.collision_radius,
@@ -84,22 +84,24 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
                 "activation": _activation(agent.cbf.activation), "penalty_max": agent.cbf.penalty_max,
                 "gain_min": agent.cbf.gain_min, "gain_max": agent.cbf.gain_max},
     }
+    # The SafetyFilterConfig field by field (core.safety.from_manifest reads it back), then the env's part.
     safety = {"method": config.method, "enabled": config.uses_filter,
-              "gain_source": "attention" if config.uses_attention else "fixed", "fixed_gain": config.fixed_gain,
-              "gain_min": config.gain_min, "gain_max": config.gain_max, "penalty_max": config.penalty_max,
-              "margin": config.filter_margin, "drone_radius": ec.cf.collision_radius,
-              "gate_half_opening": ec.gate_half_opening, "gate_bar": ec.gate_bar,
-              "floor_z": bc["floor_z"].default, "neighbour_share": bc["neighbour_share"].default,
-              "rho": fv["rho"].default, "max_iter": fv["max_iter"].default, "tol": fv["tol"].default,
+              "gain_source": "attention" if config.uses_attention else "fixed",
+              **manifest_fields(config.safety_filter), "penalty_max": config.penalty_max,
+              "drone_radius": ec.cf.collision_radius, "gate_half_opening": ec.gate_half_opening,
+              "gate_bar": ec.gate_bar,
               "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | walls 5 (x low, x high, "
                       "y low, y high, ceiling) | gate frame 5 | previous gate 5 (gate rows where a gate is observed)"}
-    return fb.make_manifest(
+    manifest = fb.make_manifest(
         scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
         env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},
         course=course, layout=ObsLayout(env.obs_layout.num_cylinders, env.obs_layout.num_neighbours),
         networks=networks, safety_filter=safety, train_config=json.loads(config_text)["train"],
         train_config_sha256=hashlib.sha256(config_text.encode()).hexdigest(), source=source,
         trained_updates=trained_updates)
+    # The full env the policy was trained on, as the run stored it: `aswarm sitl` flies on exactly this.
+    manifest["source"]["env_config"] = dataclasses.asdict(ec)
+    return manifest
 
 
 def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Path, *, force: bool = False,

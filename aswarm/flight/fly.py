@@ -1,6 +1,6 @@
 """``aswarm fly``: stream the bundle's velocity setpoints to a Crazyflie swarm (numpy; cflib only when flying).
 
-The loop, at the manifest's control rate (50 Hz for the shipped scenarios):
+The loop, at the manifest's control rate (25 Hz for the shipped scenarios):
 
 1. read the latest pose of every drone from a :class:`MocapSource`;
 2. forward the poses to the drones (``extpose``: their onboard estimators fuse the mocap pose);
@@ -16,7 +16,7 @@ high-level commander (``takeoff(height_m, duration_s)``, ``land(0.0, duration_s)
 
 Firmware setpoint timeout: the Crazyflie's commander watchdog levels the drone (zero roll/pitch
 rate) when no setpoint arrives for 500 ms and cuts the motors after 2 s, so setpoints must be
-streamed steadily; this loop sends one per drone per control period (20 ms at 50 Hz). On Ctrl-C or
+streamed steadily; this loop sends one per drone per control period (40 ms at 25 Hz). On Ctrl-C or
 any exception every drone gets an emergency stop (motors off at once), then the links close.
 
 Mocap: :class:`ReplaySource` reads a CSV of poses with the header ``t,drone,x,y,z,qw,qx,qy,qz``:

@@ -1,6 +1,6 @@
 """Forward passes of the exported networks in numpy, matching the JAX ones in ``aswarm.agents``.
 
-- Normalizer: brax's ``running_statistics.normalize(obs, state, max_abs_value=10.0)``, i.e.
+- Normalizer: brax's ``running_statistics.normalize(obs, state, max_abs_value=OBS_NORM_CLIP)``, i.e.
   ``clip((obs - mean) / std, -10, 10)`` with ``std`` stored as such (not a variance).
 - Actor (``networks.Actor``): tanh MLP to 6 numbers, ``[loc (3) | scale (3)]``. The deterministic
   command is the mean of brax's ``NormalTanhDistribution`` pushed through its tanh, times the
@@ -21,9 +21,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from aswarm.flight.observe import ObsLayout
+from aswarm.core.layout import OBS_NORM_CLIP
+from aswarm.flight.observe import PRESENT_THRESHOLD, ObsLayout
 
-NORMALIZER_MAX_ABS = 10.0
+NORMALIZER_MAX_ABS = OBS_NORM_CLIP
 _SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)
 
 
@@ -151,16 +152,14 @@ def actor_command(w: PolicyWeights, nobs: np.ndarray, max_speed: float) -> np.nd
 @functools.lru_cache(maxsize=32)
 def _presence_columns(layout: ObsLayout) -> np.ndarray:
     """Where the presence flags of the M cylinders then the n - 1 neighbours sit in an observation row."""
-    o, c, k = layout.own_dim, layout.cyl_dim, layout.nbr_dim
-    M = layout.num_cylinders
-    cols = np.concatenate([o + c * np.arange(M) + c - 1, o + c * M + k * np.arange(layout.num_neighbours) + k - 1])
+    cols = np.array(layout.presence_columns, dtype=np.intp)
     cols.setflags(write=False)
     return cols
 
 
 def hazard_mask(layout: ObsLayout, raw_obs: np.ndarray) -> np.ndarray:
     """[..., M + n - 1] presence flags read from *raw* observations (as ``networks.hazard_mask``)."""
-    return raw_obs[..., _presence_columns(layout)] > 0.5
+    return raw_obs[..., _presence_columns(layout)] > PRESENT_THRESHOLD
 
 
 def cbf_params(w: PolicyWeights, layout: ObsLayout, nobs: np.ndarray, raw_obs: np.ndarray, *, gain_min: float,

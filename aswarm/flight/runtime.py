@@ -1,6 +1,6 @@
 """``FlightController``: mocap poses in, bounded world-frame velocity setpoints out.
 
-One :meth:`FlightController.step` per control period (the manifest's rate, 50 Hz for the shipped
+One :meth:`FlightController.step` per control period (the manifest's rate, 25 Hz for the shipped
 scenarios): check the poses, update the velocity estimates, track each drone's gates (or goal),
 build the observations as the simulator does, run the actor, the attention-CBF gain and the CBF
 safety filter, and clamp. Arrays take leading batch axes (worlds) so that software-in-the-loop
@@ -27,9 +27,10 @@ import dataclasses
 
 import numpy as np
 
+from aswarm.core.geometry import gate_crossed, horizontal
 from aswarm.flight import cbf, estimator, policy
 from aswarm.flight.bundle import Bundle
-from aswarm.flight.observe import crossed_gate, gate_normals, observe
+from aswarm.flight.observe import observe
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,10 +140,10 @@ class FlightController:
                                  "rows (x, y, z, yaw), as many gates as the policy was trained with")
             lead = gates.shape[:-2]
             wp = np.broadcast_to(gates[..., None, :, :3], lead + (self.n, self.num_gates, 3))
-            nrm = np.broadcast_to(gate_normals(gates[..., None, :, 3]), wp.shape)
+            nrm = np.broadcast_to(horizontal(gates[..., None, :, 3]), wp.shape)
             self._gates = gates.reshape((-1, self.num_gates, 4))
             # Each gate's centre and direction of passage [B, G, 6], for the crossing test of every step.
-            self._gate_geo = np.concatenate([self._gates[..., :3], gate_normals(self._gates[..., 3])], -1)
+            self._gate_geo = np.concatenate([self._gates[..., :3], horizontal(self._gates[..., 3])], -1)
         else:
             if goals is None:
                 raise ValueError(f"scenario kind {kind!r} needs goals: allowed: an array [..., {self.n}, 3]")
@@ -227,7 +228,7 @@ class FlightController:
         if self._gates is not None:
             k = np.minimum(self._target, self.num_gates - 1)
             gate = self._gate_geo[self._rows, k]  # [B, n, 6]
-            crossed = moved & crossed_gate(prev_pos, p, gate[..., :3], gate[..., 3:], self._half_opening)
+            crossed = moved & gate_crossed(prev_pos, p, gate[..., :3], gate[..., 3:], self._half_opening)
             self._target = self._target + crossed
             reached = self._target >= self.num_gates
         else:
@@ -287,6 +288,9 @@ class FlightController:
         """(pos [B, M, 2], vel [B, M, 2], radius [B, M], present [B, M], lost [B, n]) as observe takes them."""
         if obstacles is None:
             return self._no_obstacles
+        if not isinstance(obstacles, Obstacles):  # a bare array has no radius: say what to pass
+            raise TypeError(f"obstacles is a {type(obstacles).__name__}: allowed: None or "
+                            "Obstacles(pos=[..., M, 2], radius=[..., M], vel=None, present=None)")
         B, M = self.B, self.num_cylinders
         op = np.asarray(obstacles.pos, np.float64)
         m = op.shape[-2] if op.ndim >= 2 else -1
@@ -337,9 +341,7 @@ def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.n
     """The bundle's safety filter on raw observations [..., n, D] and commands [..., n, 3]."""
     sf = bundle.safety_filter
     return cbf.filter_from_obs(bundle.layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
-                               float(sf["margin"]), float(sf["gate_half_opening"]), float(sf["gate_bar"]),
-                               rho=float(sf["rho"]), max_iter=int(sf["max_iter"]), tol=float(sf["tol"]),
-                               floor_z=float(sf["floor_z"]), neighbour_share=float(sf["neighbour_share"]))
+                               bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]))
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -368,10 +370,10 @@ def run_policy(bundle: Bundle, obs: np.ndarray) -> PolicyOutput:
     nobs = policy.normalize(w, obs)
     cmd = policy.actor_command(w, nobs, bundle.max_speed)
     if sf.get("gain_source") == "attention":
-        gain = policy.cbf_gain(w, bundle.layout, nobs, obs, gain_min=float(sf["gain_min"]),
-                               gain_max=float(sf["gain_max"]))
+        gain = policy.cbf_gain(w, bundle.layout, nobs, obs, gain_min=bundle.safety.gain_min,
+                               gain_max=bundle.safety.gain_max)
     else:
-        gain = np.full(obs.shape[:-1], float(sf["fixed_gain"]))
+        gain = np.full(obs.shape[:-1], bundle.safety.fixed_gain)
     if not sf["enabled"]:
         off = np.zeros(obs.shape[:-1], bool)
         return PolicyOutput(nominal=cmd, u=cmd, gain=gain, intervened=off, converged=~off)

@@ -23,6 +23,7 @@ import numpy as np
 
 from aswarm import config_args, envs
 from aswarm.analysis import evaluate
+from aswarm.analysis.protocol import EVAL_SEED
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.scenarios import cylinders_at
 from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle
@@ -72,14 +73,25 @@ def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
 
 
 def make_env(bundle: Bundle, scenario: str | None = None, env_overrides: list[str] | dict | None = None):
-    """The bundle's training environment (its env overrides, then ``env_overrides``), checked against the bundle."""
-    trained = bundle.manifest["scenario"]["env_overrides"]
-    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in trained.items()}
-    if isinstance(env_overrides, dict):
-        overrides.update(env_overrides)
+    """The bundle's training environment with ``env_overrides`` (nested ones dotted) applied, checked against the
+    bundle.
+
+    The training env is the one the run stored (the manifest's ``source.env_config``); another ``scenario``,
+    or a bundle exported before the manifest held the full env, starts from the scenario's preset with the
+    bundle's env overrides.
+    """
+    from aswarm.envs import registry
+
+    trained = {k: config_args.as_tuples(v) for k, v in bundle.manifest["scenario"]["env_overrides"].items()}
+    extra = dict(env_overrides) if isinstance(env_overrides, dict) else \
+        config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
+    stored = bundle.manifest.get("source", {}).get("env_config")
+    if stored is not None and scenario in (None, bundle.scenario):
+        base = config_args.from_dict(envs.EnvConfig, stored, "bundle source.env_config", require_all=True)
+        env = envs.SwarmEnv(config_args.replace_fields(base, extra))
     else:
-        overrides.update(config_args.parse_assignments(env_overrides or [], envs.EnvConfig))
-    env = envs.make(scenario or bundle.scenario, **overrides)
+        env = envs.SwarmEnv(config_args.replace_fields(registry.preset(scenario or bundle.scenario),
+                                                       {**trained, **extra}))
     if env.num_agents != bundle.num_agents or env.obs_layout.describe() != bundle.layout.describe():
         raise ValueError(f"the bundle was trained on {bundle.scenario!r} with {bundle.num_agents} drones and "
                          f"observations of size {bundle.layout.size}; scenario {env.config.scenario!r} has "
@@ -95,7 +107,7 @@ def course(bundle: Bundle, layout) -> dict:
     return {"goals": layout.waypoints[:, :, 0]}
 
 
-def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = 10_000,
+def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = EVAL_SEED,
              noise: float = 0.0, latency: int = 0, env_overrides: list[str] | dict | None = None,
              estimation: EstimatorConfig = EstimatorConfig(), progress: bool = False) -> dict:
     """Fly ``episodes`` episodes; returns ``aswarm eval``'s metrics plus the runtime's own statistics.

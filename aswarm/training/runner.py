@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -13,22 +14,30 @@ import numpy as np
 
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import make_train
-from aswarm.training import checkpoint, sharding
+from aswarm.training import checkpoint, run_config, sharding
 
 
 class TrainingDiverged(RuntimeError):
-    """A loss or parameter became NaN or Inf."""
+    """A loss or parameter became NaN or Inf (in every trial of the program)."""
+
+
+# Flags that may change when a run resumes: the budget (extends the run; with anneal_lr the rates then fall to 0
+# over the new budget) and host-loop settings. Anything else changes shapes or the algorithm of a state that
+# is already half-trained.
+RESUMABLE = ("total_steps", "checkpoint_minutes", "updates_per_chunk")
+DIVERGED = "DIVERGED"  # file in a run folder whose loss or parameters became NaN/Inf
 
 
 def default_run_dir(config: TrainConfig) -> Path:
     return Path("runs") / f"{config.scenario}-{config.method}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def write_config(run_dir: Path, config: TrainConfig, env_config) -> None:
-    payload = {"train": dataclasses.asdict(config), "env": dataclasses.asdict(env_config)}
-    tmp = run_dir / "config.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=2, default=str))
-    tmp.replace(run_dir / "config.json")
+def write_config(run_dir: Path, config: TrainConfig, env_config=None) -> None:
+    """``config.json``: the training config and the run's full resolved env (``run_config``). ``env_config``
+    (an agent's ``env.config``, for callers that pass it) must be the config's own env."""
+    if env_config is not None and env_config != config.env:
+        raise ValueError("invalid env_config: it differs from config.env; allowed: the run's own env (config.env)")
+    run_config.write(run_dir, config)
 
 
 def _finite(tree) -> bool:
@@ -36,19 +45,199 @@ def _finite(tree) -> bool:
                if np.issubdtype(np.asarray(x).dtype, np.floating))
 
 
-def train(config: TrainConfig, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
-          max_updates: int | None = None) -> Path:
-    """Train (or resume) into ``run_dir``; returns the run folder.
+def finite_rows(tree) -> np.ndarray:
+    """[K] whether every float leaf of trial k (leading axis) is finite."""
+    ok = None
+    for x in jax.tree.leaves(tree):
+        x = np.asarray(x)
+        if np.issubdtype(x.dtype, np.floating) and x.size:
+            f = np.isfinite(x).reshape(x.shape[0], -1).all(-1)
+            ok = f if ok is None else ok & f
+    return ok
 
-    ``max_updates`` stops early after that many updates in this call (for tests
-    and interrupted-run checks); the budget stays ``config.num_updates``.
+
+# --- the host loop, shared by a run and a sweep group ---------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Program:
+    """A compiled trainer laid out over ``mesh``: one run (``stacked=False``: state and metrics without a trial
+    axis) or the K trials of a sweep group (``stacked=True``: a leading trial axis everywhere)."""
+
+    env: object  # the SwarmEnv (its shapes go into the checkpoints' fingerprint)
+    init_fn: Callable  # (*init_args) -> state
+    chunk_fn: Callable  # (state, k) -> (state, metrics {name: [k]} or {name: [K, k]}); donates the state
+    init_args: tuple
+    mesh: object
+    stacked: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopResult:
+    state: object  # the state on the devices after the last chunk
+    start: int  # the update it started (or resumed) at
+    update: int  # the update it stopped at
+    diverged: tuple[bool, ...]  # per trial: loss or parameters became NaN/Inf
+
+
+def truncate_log(path: Path, update: int) -> None:
+    """Drop log rows past the restored update (they will be produced again); atomic, as every log write is."""
+    if not path.exists():
+        return
+    rows = [r for r in path.read_text().splitlines() if r and json.loads(r)["update"] <= update]
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text("".join(r + "\n" for r in rows))
+    tmp.replace(path)
+
+
+def append_rows(path: Path, metrics: dict, trial: int, first: int, steps_per_update: int) -> list[dict]:
+    """Append trial ``trial``'s rows of ``metrics`` ({name: [K, k]}) for updates first+1 .. first+k to the log."""
+    k = len(next(iter(metrics.values()))[trial])
+    rows = []
+    for j in range(k):
+        row = {name: float(v[trial, j]) for name, v in metrics.items()}
+        row.update(update=first + j + 1, env_steps=(first + j + 1) * steps_per_update)
+        rows.append(row)
+    with path.open("a") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+    return rows
+
+
+def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: list[Path], *,
+             progress: bool = True, max_updates: int | None = None, desc: str | None = None,
+             tensorboard: bool = False, log: Callable[[str], None] | None = None,
+             label: str | None = None) -> LoopResult:
+    """Train ``program`` from its newest checkpoint in ``ckpt_dir`` (or from init) to ``config.num_updates``.
+
+    One metrics log per trial (``trial_dirs[i]/metrics.jsonl``, truncated atomically to the restored update),
+    one checkpoint policy (every ``checkpoint_minutes`` and at the end, into ``ckpt_dir/checkpoints``), one NaN
+    policy: a trial whose loss or parameters become NaN/Inf is marked (a ``DIVERGED`` file naming the update)
+    and the others train on; when every trial has, the loop stops with :class:`TrainingDiverged` before
+    logging or saving that chunk, so the last good checkpoint is kept. ``max_updates`` stops after that many
+    updates in this call (tests, interrupted-run checks). Only process 0 writes logs. ``log`` gets the lines
+    prefixed with ``label`` (resumed, diverged) and the checkpoint fallback's (default: stderr).
     """
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
 
+    primary = jax.process_index() == 0
+    mngr = checkpoint.manager(ckpt_dir, fingerprint=checkpoint.fingerprint(config, program.env))
+    ts = program.init_fn(*program.init_args)
+    shardings = sharding.state_shardings(program.mesh, ts, stacked=program.stacked)
+    if mngr.latest_step() is not None:
+        # Restored on the host, then laid out again: the same on one device, many, or many hosts.
+        restored = checkpoint.restore_newest(mngr, sharding.fetch(ts), log=log)
+        ts = jax.tree.map(sharding.put, restored, shardings)
+        start = int(np.asarray(restored.update).reshape(-1)[0])
+        good = finite_rows(restored.params) if program.stacked else [_finite(restored.params)]
+        if label and log:
+            log(f"{label}: resumed at update {start}")
+    else:
+        start, good = 0, [True] * len(trial_dirs)
+    if primary:
+        for d, ok in zip(trial_dirs, good):
+            truncate_log(d / "metrics.jsonl", start)
+            if ok:  # the divergence it records came after the restored state: it may not happen again
+                (d / DIVERGED).unlink(missing_ok=True)
+    diverged = [not ok for ok in good]
+    total = config.num_updates
+    stop = total if max_updates is None else min(total, start + max_updates)
+    writer = SummaryWriter(str(trial_dirs[0] / "tb")) if tensorboard and primary else None
+    bar = tqdm(total=total, initial=start, unit="upd", disable=not (progress and primary), dynamic_ncols=True,
+               desc=desc)
+    last_save, update = time.monotonic(), start
+    try:
+        t_prev = time.monotonic()
+        while update < stop:
+            k = min(config.updates_per_chunk, stop - update)
+            new_ts, metrics = program.chunk_fn(ts, k)  # donates ts
+            metrics = sharding.fetch(metrics)
+            if not program.stacked:
+                metrics = {name: np.asarray(v)[None] for name, v in metrics.items()}  # [1, k]: one trial
+            params = sharding.fetch(new_ts.params)
+            loss = np.asarray(metrics["train/loss"])
+            ok = np.isfinite(loss).all(-1) & (finite_rows(params) if program.stacked else np.array([_finite(params)]))
+            bad_at = {}  # trial -> the first update whose loss is not finite (else the chunk's last)
+            for i in np.flatnonzero(~ok):
+                rows_bad = np.flatnonzero(~np.isfinite(loss[i]))
+                bad_at[int(i)] = update + 1 + int(rows_bad[0]) if rows_bad.size else update + k
+            for i, at in bad_at.items():
+                if not diverged[i]:
+                    diverged[i] = True
+                    if primary:
+                        (trial_dirs[i] / DIVERGED).write_text(f"loss or parameters became NaN/Inf at update {at}\n")
+                    if label and log:
+                        log(f"{label}: {trial_dirs[i].name} diverged at update {at}")
+            if not ok.any():
+                raise TrainingDiverged(f"loss or parameters became NaN/Inf at update {min(bad_at.values())}; "
+                                       f"{checkpoint.last_good(mngr)}")
+            ts = new_ts
+            now = time.monotonic()
+            sps = k * config.steps_per_update / (now - t_prev)
+            t_prev = now
+            if primary:
+                for i, d in enumerate(trial_dirs):
+                    rows = append_rows(d / "metrics.jsonl", metrics, i, update, config.steps_per_update)
+                    for row in rows if writer is not None and i == 0 else ():
+                        for name, v in row.items():
+                            if name != "update":
+                                writer.add_scalar(name, v, row["update"])
+            update += k
+            if len(trial_dirs) == 1:
+                last = {name: float(v[0, -1]) for name, v in metrics.items()}
+                bar.set_postfix(sps=f"{sps:,.0f}", ret=f"{last['episode/episode_return']:.1f}",
+                                success=f"{last['episode/success']:.2f}", coll=f"{last['episode/collision']:.2f}")
+            else:
+                bar.set_postfix(sps=f"{sps:,.0f}",
+                                best_success=f"{np.nanmax(np.asarray(metrics['episode/success'])[:, -1]):.2f}")
+            bar.update(k)
+            if update >= stop or now - last_save > 60 * config.checkpoint_minutes:
+                checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
+                last_save = now
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+    return LoopResult(ts, start, update, tuple(diverged))
+
+
+# --- a single run ----------------------------------------------------------------------------------------------
+
+
+def resume_config(stored: TrainConfig, changes: dict | None) -> TrainConfig:
+    """The stored config with the flags that may change on resume applied; any other flag that differs is a
+    one-line ValueError."""
+    changes = {k: v for k, v in (changes or {}).items() if getattr(stored, k) != v}
+    refused = [k for k in changes if k not in RESUMABLE]
+    if refused:
+        flag = "--" + refused[0].replace("_", "-")
+        raise ValueError(f"invalid {flag} with --resume: the run was trained with {refused[0]}="
+                         f"{getattr(stored, refused[0])!r} and it changes the algorithm or the state's shapes; "
+                         f"allowed with --resume: {', '.join('--' + k.replace('_', '-') for k in RESUMABLE)}, --quiet")
+    return dataclasses.replace(stored, **changes) if changes else stored
+
+
+def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
+          max_updates: int | None = None, changes: dict | None = None) -> Path:
+    """Train (or resume) into ``run_dir``; returns the run folder.
+
+    A run is a sweep of one trial: the same host loop (:func:`run_loop`) on an unstacked state. With
+    ``resume`` the config is the run's own (``config.json``, env as stored), with ``changes`` (flags given
+    again) applied where :data:`RESUMABLE` allows. ``max_updates`` stops early after that many updates in this
+    call (for tests and interrupted-run checks); the budget stays ``config.num_updates``.
+    """
     run_dir = Path(run_dir) if run_dir else default_run_dir(config)
     if resume:
-        config = checkpoint.load_config(run_dir)
+        stored = checkpoint.load_config(run_dir)
+        latest = checkpoint.manager(run_dir).latest_step()
+        if latest is None:
+            raise checkpoint.CheckpointError(f"no checkpoint in {run_dir / 'checkpoints'}: nothing to resume")
+        config = resume_config(stored, changes)
+        if config.total_steps != stored.total_steps and config.num_updates <= latest:
+            raise ValueError(f"invalid --total-steps={config.total_steps} with --resume: the run is at update "
+                             f"{latest} ({latest * config.steps_per_update} env steps) already; allowed: more")
+        if config != stored:
+            write_config(run_dir, config)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise ValueError(f"run folder {run_dir} already holds checkpoints: use --resume {run_dir} or another --out")
     mesh = sharding.training_mesh(config.num_envs, config.devices)
@@ -57,70 +246,13 @@ def train(config: TrainConfig, run_dir: Path | None = None, resume: bool = False
     agent, init, update_chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
-        write_config(run_dir, config, agent.env.config)
-    mngr = checkpoint.manager(run_dir)
+        write_config(run_dir, config)
     key = jax.random.PRNGKey(config.seed)
     init_fn, chunk_fn = sharding.sharded_fns(init, update_chunk, jax.eval_shape(init, key), mesh, stacked=False)
-    ts = init_fn(key)
-    if resume:
-        layout = sharding.state_shardings(mesh, ts, stacked=False)
-        ts = jax.tree.map(sharding.put, checkpoint.restore(mngr, sharding.fetch(ts)), layout)
-        _truncate_log(run_dir / "metrics.jsonl", int(ts.update))
-    start = int(ts.update)
-    total = config.num_updates
-    stop = total if max_updates is None else min(total, start + max_updates)
-    writer = SummaryWriter(str(run_dir / "tb"))
-    bar = tqdm(total=total, initial=start, unit="upd", disable=not progress, dynamic_ncols=True)
-    last_save = time.monotonic()
-    log = (run_dir / "metrics.jsonl").open("a")
-    try:
-        t_prev = time.monotonic()
-        while int(ts.update) < stop:
-            k = min(config.updates_per_chunk, stop - int(ts.update))
-            new_ts, metrics = chunk_fn(ts, k)  # donates ts
-            metrics = jax.device_get(metrics)
-            if not (_finite(metrics["train/loss"]) and _finite(new_ts.params)):
-                bad = int(new_ts.update) - k + int(np.argmax(~np.isfinite(metrics["train/loss"])))
-                raise TrainingDiverged(
-                    f"loss or parameters became NaN/Inf at update {bad}; the last good checkpoint "
-                    f"(update {mngr.latest_step()}) in {run_dir / 'checkpoints'} is kept")
-            ts = new_ts
-            now = time.monotonic()
-            sps = k * config.steps_per_update / (now - t_prev)
-            t_prev = now
-            first = int(ts.update) - k
-            for i in range(k):
-                row = {name: float(v[i]) for name, v in metrics.items()}
-                row.update(update=first + i + 1, env_steps=(first + i + 1) * config.steps_per_update)
-                log.write(json.dumps(row) + "\n")
-                for name, v in row.items():
-                    if name not in ("update",):
-                        writer.add_scalar(name, v, row["update"])
-            log.flush()
-            last = {name: float(v[-1]) for name, v in metrics.items()}
-            bar.set_postfix(sps=f"{sps:,.0f}", ret=f"{last['episode/episode_return']:.1f}",
-                            success=f"{last['episode/success']:.2f}", coll=f"{last['episode/collision']:.2f}")
-            bar.update(k)
-            done = int(ts.update) >= stop
-            if done or now - last_save > 60 * config.checkpoint_minutes:
-                checkpoint.save(mngr, int(ts.update), sharding.for_checkpoint(sharding.fetch(ts)))
-                last_save = now
-    finally:
-        bar.close()
-        log.close()
-        writer.close()
+    program = Program(agent.env, init_fn, chunk_fn, (key,), mesh, stacked=False)
+    run_loop(program, config, run_dir, [run_dir], progress=progress, max_updates=max_updates, tensorboard=True)
     plot_curves(run_dir)
     return run_dir
-
-
-def _truncate_log(path: Path, update: int) -> None:
-    """Drop log rows past the restored update (they will be produced again)."""
-    if not path.exists():
-        return
-    rows = [r for r in path.read_text().splitlines() if r and json.loads(r)["update"] <= update]
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text("".join(r + "\n" for r in rows))
-    tmp.replace(path)
 
 
 def read_metrics(run_dir: Path) -> list[dict]:

@@ -32,9 +32,12 @@ import numpy as np
 from aswarm import config_args
 from aswarm.agents import hparams
 from aswarm.agents.config import TrainConfig
+from aswarm.core import safety
 
-TOP_KEYS = ("name", "scenario", "method", "total_steps", "seeds", "last_updates", "sample_seed", "fixed", "grid",
-            "random")
+TOP_KEYS = ("name", "scenario", "method", "total_steps", "seeds", "last_updates", "sample_seed", "max_trials",
+            "fixed", "grid", "random")
+# More trials than this is more likely a typo in a grid than a plan: the file must say max_trials = N (or --yes).
+MAX_TRIALS = 256
 # Set once for the whole sweep, at the top level of the file.
 NOT_SWEPT = ("scenario", "seed", "total_steps", "env_overrides")
 RANK_METRICS = ("success", "collision", "episode_return")
@@ -76,12 +79,13 @@ class SweepSpec:
 
 
 def _types() -> tuple[dict, dict]:
-    """Field types of TrainConfig and of EnvConfig's plain fields (its nested dataclasses are not sweepable)."""
+    """Field types of TrainConfig and of every EnvConfig field, nested ones by dotted name (``cf.mass``)."""
     from aswarm import envs
 
-    env = {k: t for k, t in config_args.field_types(envs.EnvConfig).items()
-           if t in (bool, int, float, str) or typing.get_origin(t) is tuple}
-    return config_args.field_types(TrainConfig), env
+    env = {k: t for k, t in config_args.leaf_types(envs.EnvConfig).items() if config_args.is_flag(t)}
+    # The safety filter's sweepable settings under their flat names (gain_min, ...: also the hyperparameters').
+    legacy = {k: config_args.field_types(safety.SafetyFilterConfig)[v] for k, v in safety.LEGACY_FIELDS.items()}
+    return {**config_args.field_types(TrainConfig), **legacy}, env
 
 
 def _coerce(where: str, kind, value):
@@ -127,12 +131,23 @@ def _field(where: str, key: str, train_types: dict, env_types: dict):
 
 
 def _flatten_env(table: dict) -> dict:
-    """TOML ``env.x = ...`` (a nested table) and ``"env.x" = ...`` both become the key ``"env.x"``."""
+    """TOML ``env.x = ...`` (a nested table) and ``"env.x" = ...`` both become the key ``"env.x"``; nested env
+    fields too (``env.cf.mass = ...`` -> ``"env.cf.mass"``), down to a field (a ``{low, high}`` range stays)."""
     out = {k: v for k, v in table.items() if k != "env"}
     env = table.get("env", {})
     if not isinstance(env, dict):
         raise ValueError(f"invalid env = {env!r}: allowed: a table of env fields (env.FIELD = ...)")
-    out.update({f"env.{k}": v for k, v in env.items()})
+    leaves = _types()[1]
+
+    def walk(prefix: str, sub: dict) -> None:
+        for k, v in sub.items():
+            name = prefix + k
+            if isinstance(v, dict) and name not in leaves:
+                walk(name + ".", v)
+            else:
+                out[f"env.{name}"] = v
+
+    walk("", env)
     return out
 
 
@@ -188,6 +203,9 @@ def _grid_points(name: str, table: dict, types: tuple[dict, dict]) -> list[dict]
         if not isinstance(values, list) or not values:
             raise ValueError(f"{where}: invalid {values!r}; allowed: a non-empty list of values")
         lists[key] = [_coerce(where, kind, v) for v in values]
+        repeated = next((v for i, v in enumerate(lists[key]) if v in lists[key][:i]), None)
+        if repeated is not None:  # the same trials twice, under two names
+            raise ValueError(f"{where}: value {repeated!r} is listed twice; allowed: distinct values")
     return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
 
 
@@ -198,8 +216,11 @@ def _label(point: dict) -> str:
     return " ".join(f"{k}={fmt(v)}" for k, v in point.items()) or "base"
 
 
-def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
-    """A parsed TOML document -> SweepSpec; every error is a one-line ValueError, raised before any compile."""
+def parse(data: dict, name: str = "sweep", source: str = "", yes: bool = False) -> SweepSpec:
+    """A parsed TOML document -> SweepSpec; every error is a one-line ValueError, raised before any compile.
+
+    More than ``max_trials`` trials (default :data:`MAX_TRIALS`) are refused unless ``yes``.
+    """
     from aswarm import envs
 
     types = _types()
@@ -211,7 +232,8 @@ def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
         raise ValueError(f"sweep: invalid name = {name!r}; allowed: a non-empty string")
     top = {}
     for key, kind, required in (("scenario", str, True), ("total_steps", int, True), ("method", str, False),
-                                ("last_updates", int, False), ("sample_seed", int, False)):
+                                ("last_updates", int, False), ("sample_seed", int, False),
+                                ("max_trials", int, False)):
         if key not in data:
             if required:
                 raise ValueError(f"sweep {name}: missing {key} = ...; a sweep needs scenario, total_steps and seeds")
@@ -227,6 +249,9 @@ def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
     if last_updates < 1:
         raise ValueError(f"sweep {name}: invalid last_updates = {last_updates}; allowed: an integer >= 1")
     sample_seed = top.pop("sample_seed", 0)
+    max_trials = top.pop("max_trials", MAX_TRIALS)
+    if max_trials < 1:
+        raise ValueError(f"sweep {name}: invalid max_trials = {max_trials}; allowed: an integer >= 1")
 
     fixed = {}
     for key, value in _table(data, "fixed", name).items():
@@ -240,6 +265,10 @@ def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
         points = _grid_points(name, _table(data, "grid", name), types)
     else:
         points = _random_points(name, _table(data, "random", name), sample_seed, types)
+    if len(points) * len(seeds) > max_trials and not yes:  # before building thousands of configurations
+        raise ValueError(f"sweep {name}: {len(points) * len(seeds)} trials ({len(points)} configurations x "
+                         f"{len(seeds)} seeds) is more than max_trials = {max_trials}; allowed: set max_trials "
+                         f"in the file, or pass --yes")
     for key in points[0]:
         if key in fixed:
             raise ValueError(f"sweep {name}: {key!r} is both fixed and searched; allowed: one of the two")
@@ -251,9 +280,9 @@ def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
         env_over = tuple(sorted((k[4:], v) for k, v in values.items() if k.startswith("env.")))
         label = _label(point)
         try:
-            cfg = TrainConfig(**train, env_overrides=env_over)
-            if (cfg.scenario, env_over) not in checked_envs:  # builds the model only: no compile
-                checked_envs[(cfg.scenario, env_over)] = envs.make(cfg.scenario, **dict(env_over))
+            cfg = TrainConfig(**safety.nest_legacy(train), env_overrides=env_over)  # resolves and checks the env
+            if cfg.env not in checked_envs:  # builds the model only: no compile
+                checked_envs[cfg.env] = envs.SwarmEnv(cfg.env)
         except ValueError as e:
             raise ValueError(f"sweep {name}: configuration {label}: {e}") from None
         configs.append(cfg)
@@ -262,7 +291,7 @@ def parse(data: dict, name: str = "sweep", source: str = "") -> SweepSpec:
                      seeds=tuple(seeds), last_updates=last_updates, source=source)
 
 
-def load(path: str | Path) -> SweepSpec:
+def load(path: str | Path, yes: bool = False) -> SweepSpec:
     """Read and check a sweep file; a ValueError (before anything compiles) when it is bad."""
     path = Path(path)
     if not path.is_file():
@@ -272,16 +301,16 @@ def load(path: str | Path) -> SweepSpec:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"invalid sweep file {str(path)!r}: not valid TOML: {e}") from None
-    return parse(data, path.stem, text)
+    return parse(data, path.stem, text, yes=yes)
 
 
 def groups(spec: SweepSpec) -> tuple[Group, ...]:
     """Trials grouped by everything but the value-only hyperparameters: one compile per group."""
     defaults = TrainConfig()
-    blank = {f: getattr(defaults, f) for f in hparams.VALUE_FIELDS}
+    blank = {f: hparams.value(defaults, f) for f in hparams.VALUE_FIELDS}
     by_key: dict = {}
     for t in spec.trials:
-        by_key.setdefault(dataclasses.replace(t.config, seed=0, **blank), []).append(t)
+        by_key.setdefault(hparams.replaced(dataclasses.replace(t.config, seed=0), blank), []).append(t)
     return tuple(Group(i, tuple(ts), hparams.varying([t.config for t in ts])) for i, ts in enumerate(by_key.values()))
 
 
@@ -318,28 +347,10 @@ def _programs(group: Group, mesh=None):
     return agent, init_fn, chunk_fn, sharding.put(keys, lead), sharding.put(values, lead), mesh
 
 
-def _finite_rows(tree) -> np.ndarray:
-    """[K] whether every float leaf of trial k is finite."""
-    ok = None
-    for x in jax.tree.leaves(tree):
-        x = np.asarray(x)
-        if np.issubdtype(x.dtype, np.floating) and x.size:
-            f = np.isfinite(x).reshape(x.shape[0], -1).all(-1)
-            ok = f if ok is None else ok & f
-    return ok
-
-
-def _truncate(path: Path, update: int) -> None:
-    if path.exists():
-        rows = [r for r in path.read_text().splitlines() if r and json.loads(r)["update"] <= update]
-        path.write_text("".join(r + "\n" for r in rows))
-
-
 def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
                log: Callable[[str], None]) -> dict:
-    """Train one group to its budget (or ``max_updates`` more); returns its timing and whether it finished."""
-    from tqdm import tqdm
-
+    """Train one group to its budget (or ``max_updates`` more) with the runner's host loop (a run is a group
+    of one trial); returns its timing and whether it finished."""
     from aswarm.training import checkpoint, runner, sharding
 
     gdir = out / "groups" / f"g{group.index}"
@@ -353,67 +364,41 @@ def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None,
     agent, init_fn, chunk_fn, keys, values, mesh = _programs(group, mesh)
     log(f"group {group.index}: {len(group.trials)} trials in one program, swept {list(group.sweep_fields) or 'seeds'}"
         f"; {sharding.describe(mesh)}")
-    ts = init_fn(keys, values)
-    shardings = sharding.state_shardings(mesh, ts, stacked=True)
-    mngr = checkpoint.manager(gdir)
     tdirs = [out / "trials" / t.name for t in group.trials]
-    if mngr.latest_step() is not None:
-        # Restored on the host, then laid out again: the same on one device, many, or many hosts.
-        restored = checkpoint.restore(mngr, sharding.fetch(ts))
-        ts = jax.tree.map(lambda x, s: sharding.put(x, s), restored, shardings)
-        log(f"group {group.index}: resumed at update {int(np.asarray(restored.update)[0])}")
-    start = int(sharding.fetch(ts.update)[0])
     if primary:
         for t, d in zip(group.trials, tdirs):
             d.mkdir(parents=True, exist_ok=True)
-            runner.write_config(d, t.config, agent.env.config)
-            _truncate(d / "metrics.jsonl", start)
+            runner.write_config(d, t.config)
+    program = runner.Program(agent.env, init_fn, chunk_fn, (keys, values), mesh, stacked=True)
     total = base.num_updates
-    stop = total if max_updates is None else min(total, start + max_updates)
-    bar = tqdm(total=total, initial=start, unit="upd", disable=not (progress and primary), dynamic_ncols=True,
-               desc=f"group {group.index}")
-    last_save, update = time.monotonic(), start
     try:
-        while update < stop:
-            k = min(base.updates_per_chunk, stop - update)
-            ts, metrics = chunk_fn(ts, k)
-            metrics = sharding.fetch(metrics)  # {name: [K, k]}
-            update += k
-            if primary:
-                for i, d in enumerate(tdirs):
-                    with (d / "metrics.jsonl").open("a") as f:
-                        for j in range(k):
-                            row = {name: float(v[i, j]) for name, v in metrics.items()}
-                            u = update - k + j + 1
-                            row.update(update=u, env_steps=u * base.steps_per_update)
-                            f.write(json.dumps(row) + "\n")
-            success = np.asarray(metrics["episode/success"])[:, -1]
-            bar.set_postfix(best_success=f"{np.nanmax(success):.2f}")
-            bar.update(k)
-            now = time.monotonic()
-            if update >= stop or now - last_save > 60 * base.checkpoint_minutes:
-                checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
-                last_save = now
-    finally:
-        bar.close()
+        res = runner.run_loop(program, base, gdir, tdirs, progress=progress, max_updates=max_updates,
+                              desc=f"group {group.index}", log=log, label=f"group {group.index}")
+    except runner.TrainingDiverged as e:
+        # Every trial diverged: nothing left to train; each trial folder holds its DIVERGED file.
+        log(f"group {group.index}: every trial diverged ({e})")
+        result = {"group": group.index, "trials": [t.name for t in group.trials],
+                  "sweep_fields": group.sweep_fields, "updates": None, "finished": True, "diverged": True,
+                  "wall_s": time.monotonic() - t0, "devices": int(mesh.devices.size)}
+        if primary:
+            done_file.write_text(json.dumps(result))
+        return result
+    update = res.update
     result = {"group": group.index, "trials": [t.name for t in group.trials], "sweep_fields": group.sweep_fields,
               "updates": update, "finished": update >= total, "wall_s": time.monotonic() - t0,
               "devices": int(mesh.devices.size)}
     if update < total:
         return result
-    final = sharding.fetch(ts)
-    finite = _finite_rows(final.params)
-    for i, d in enumerate(tdirs):
+    final = sharding.fetch(res.state)
+    for i, (t, d) in enumerate(zip(group.trials, tdirs)):
         # The trial's own config holds its values: saved without hparams, the checkpoint is a plain run's,
         # so `aswarm eval`, `aswarm export` and `aswarm train --resume` read it.
         trial_state = sharding.for_checkpoint(hparams.index(final, i).replace(hparams={}))
-        trial_mngr = checkpoint.manager(d)
+        trial_mngr = checkpoint.manager(d, fingerprint=checkpoint.fingerprint(t.config, agent.env))
         if trial_mngr.latest_step() != update:  # not saved already by a run killed before done.json
             checkpoint.save(trial_mngr, update, trial_state)
         if primary:
             runner.plot_curves(d)
-            if not finite[i]:
-                (d / "DIVERGED").write_text("parameters became NaN/Inf\n")
     if primary:
         done_file.write_text(json.dumps(result))
     return result

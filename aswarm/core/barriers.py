@@ -1,0 +1,262 @@
+"""Control-barrier-function rows of the safety filter, written once for numpy and JAX (the array API).
+
+Model: each drone is a single integrator at the velocity level, ``ṗ ≈ u`` with ``u ∈ R^3`` the
+world-frame velocity command. Every hazard ``j`` has a barrier ``h_j(p) ≥ 0`` (safe set) and the CBF
+condition
+
+    ḣ_j = ∇h_j · (u − v_j) ≥ −γ_j h_j,
+
+with ``v_j`` the hazard's velocity and ``γ_j > 0`` a class-K gain (1/s). Each condition is a half-space
+``a_j · u ≥ b_j``: one :class:`Rows` entry. The QP that finds the command closest to the policy's
+within all of them is solved twice, by ``aswarm.agents.cbf_filter`` (JAX, fixed shape under ``jit``)
+and ``aswarm.flight.cbf`` (numpy, early exit for latency); both take their rows from here.
+
+Every barrier is a distance (clearance minus margin), so every ``∇h`` is a unit vector and ``γ`` has
+one meaning for every hazard: the gap may close at most ``γ h`` m/s. Functions take leading batch axes
+``...`` (worlds, drones) and, like :mod:`aswarm.core.geometry`, ask their arguments for their array
+namespace and build arrays without in-place writes, so the simulator traces them inside ``jit``/``vmap``
+and the flight runtime runs them in a process without JAX. Rows from observations
+(:func:`obs_rows`) are laid out ``[cylinders M | neighbours K | floor 1 | walls 5 | gate frame 5 |
+previous gate 5]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from aswarm.core import geometry
+from aswarm.core.layout import CYL, NBR, OWN
+
+# Below this length a direction is taken as zero (its row is ignored; keeps gradients finite).
+EPS = 1e-9
+# Inward normals of the arena's walls, in the order of the observation's wall_clearance field.
+WALL_NORMALS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+# Rows after the point hazards in obs_rows: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
+FIXED_ROWS = 1 + 5 + 10
+# An observed gate direction of passage is a unit vector, an absent gate's is 0: tested against this |n|².
+_GATE_PRESENT_SQ = 0.25
+# The own fields of the current gate and of the one passed last: (offset, direction of passage).
+_GATE_FIELDS = (("target_rel", "target_normal"), ("prev_gate_rel", "prev_gate_normal"))
+
+
+def _gate_columns(which: int) -> np.ndarray:
+    """[2 gates, 3] columns of an own row holding field ``which`` (0 offset, 1 direction) of both gates: the
+    numpy path of obs_rows reads both gates in one go (see there)."""
+    cols = [OWN.slice(fields[which]) for fields in _GATE_FIELDS]
+    if any(sl.stop - sl.start != 3 for sl in cols):
+        raise ImportError("obs_rows expects the gates' offsets and directions of passage as 3 numbers each")
+    return np.array([np.arange(sl.start, sl.stop) for sl in cols])
+
+
+_GATE_REL_COLS, _GATE_NORMAL_COLS = _gate_columns(0), _gate_columns(1)
+
+
+class Rows(NamedTuple):
+    """Linear CBF constraints ``A u ≥ b``: A [..., m, 3] (∇h_j), b [..., m], mask [..., m] (present rows),
+    h [..., m] barrier values (m): clearance minus margin, negative inside the margin."""
+
+    A: object
+    b: object
+    mask: object
+    h: object
+
+
+def unit(d):
+    """(||d||, d/||d||) over the last axis; zero direction where d = 0 (keeps gradients finite)."""
+    xp = geometry.namespace(d)
+    sq = xp.sum(d * d, axis=-1)
+    ok = sq > EPS**2
+    if isinstance(ok, np.ndarray) and ok.all():  # numpy with no zero direction (in flight, most calls): the
+        dist = np.sqrt(sq)  # values of the masked form below, without its three passes of masking
+        return dist, d / dist[..., None]
+    dist = xp.sqrt(xp.where(ok, sq, 1.0))
+    return xp.where(ok, dist, 0.0), xp.where(ok[..., None], d / dist[..., None], 0.0)
+
+
+def concat(parts) -> Rows:
+    """The rows of ``parts`` one after the other."""
+    xp = geometry.namespace(parts[0].A)
+    return Rows(*(xp.concat(list(f), axis=-2 if i == 0 else -1) for i, f in enumerate(zip(*parts))))
+
+
+def _rows_like(h, normals):
+    """Constant unit normals [k, 3] for the rows of ``h`` [..., k] (an addition rather than ``broadcast_to``:
+    numpy's costs ~10 µs a call, and the flight filter runs every control step)."""
+    xp = geometry.namespace(h)
+    return xp.zeros_like(h)[..., None] + xp.asarray(normals, dtype=h.dtype)
+
+
+def cylinder_rows(pos, center, radius, vel, present, gamma, *, drone_radius: float, margin: float = 0.0) -> Rows:
+    """Rows for vertical cylinders (infinite in z: conservative above a cylinder's top).
+
+    pos [..., 3]; center, vel [..., M, 2] (cylinder xy position and velocity); radius, present [..., M];
+    gamma [..., M] or broadcastable. h = ||p_xy − c|| − (R + r_d + margin): the distance form rather than
+    the squared one, so that a drone may not approach a large cylinder faster than a small one at the
+    same gap (the squared form's rate is γ(d² − R²)/2d).
+    """
+    xp = geometry.namespace(pos, center)
+    dist, n_xy = unit(pos[..., None, :2] - center)  # [..., M], [..., M, 2]
+    h = dist - (radius + drone_radius + margin)
+    A = xp.concat([n_xy, xp.zeros_like(n_xy[..., :1])], axis=-1)
+    b = xp.sum(n_xy * vel, axis=-1) - gamma * h
+    return Rows(A, b, present, h)
+
+
+def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
+                   share=0.5) -> Rows:
+    """Rows for the other drones (spheres).
+
+    pos, vel [..., 3] (this drone); nbr_pos, nbr_vel [..., K, 3]; present [..., K]; gamma [..., K] or
+    broadcastable; share [] or [..., K]. h = ||p − q|| − (2 r_d + margin) and the pair condition is
+    n · (u − u_k) ≥ −γ h with n = (p − q)/||p − q||. Responsibility is split: this drone keeps
+
+        n · u ≥ n · ((1 − w) v + w v_k) − w γ h,      w = share ∈ (0, 1].
+
+    If the neighbour applies the same rule with share 1 − w (w = 1/2 for both by default) and both see
+    the same velocities, the two rows add up to the pair condition for any v, v_k: the split is sound
+    without knowing the other's command. The reference (1 − w) v + w v_k (an ORCA-style reciprocal
+    split) makes each drone take its share of the change from the current relative velocity; with
+    v = v_k = 0 it reduces to the classic n · u ≥ −γ h / 2. share = 1 treats the neighbour as a
+    non-cooperative moving obstacle.
+    """
+    xp = geometry.namespace(pos, nbr_pos)
+    dist, n = unit(pos[..., None, :] - nbr_pos)  # [..., K], [..., K, 3]
+    h = dist - (2.0 * drone_radius + margin)
+    share = xp.asarray(share)
+    ref_vel = (1.0 - share)[..., None] * vel[..., None, :] + share[..., None] * nbr_vel
+    b = xp.sum(n * ref_vel, axis=-1) - share * gamma * h
+    return Rows(n, b, present, h)
+
+
+def floor_row(pos, gamma, *, z_min: float) -> Rows:
+    """One row for the floor: h = z − z_min (z_min: lowest allowed altitude of the drone centre)."""
+    xp = geometry.namespace(pos)
+    h = pos[..., 2:3] - z_min
+    return Rows(_rows_like(h, ((0.0, 0.0, 1.0),)), -gamma * h, xp.ones(h.shape, dtype=bool), h)
+
+
+def wall_rows(clearance, gamma, *, drone_radius: float, margin: float = 0.0) -> Rows:
+    """Rows for the arena's 4 side walls and its ceiling: ``clearance`` [..., 5] is the drone centre's distance
+    to each (x low, x high, y low, y high, ceiling), h = clearance − (r_d + margin), ∇h the inward normal."""
+    xp = geometry.namespace(clearance)
+    h = clearance - (drone_radius + margin)
+    return Rows(_rows_like(h, WALL_NORMALS), -gamma * h, xp.ones(h.shape, dtype=bool), h)
+
+
+def gate_rows(pos, gate_center, gate_normal, present, gamma, *, half_opening: float, bar: float,
+              drone_radius: float, margin: float = 0.0) -> Rows:
+    """Rows for the frame of one gate: its 4 edges and the post to the floor (5 round bars).
+
+    pos, gate_center (centre of the opening), gate_normal (horizontal direction of passage) [..., 3];
+    present [...] bool; gamma [..., 5] or broadcastable. h = distance to the bar's axis − (bar/2 + r_d +
+    margin), ∇h the unit vector from the nearest point of the bar to the drone: a drone flying through
+    the middle of the opening sees only sideways normals and is not slowed.
+    """
+    xp = geometry.namespace(pos, gate_center)
+    yaw = xp.atan2(gate_normal[..., 1], gate_normal[..., 0])
+    frames = geometry.gate_frames(gate_center, yaw, half_opening, bar)  # [..., 5, 2, 3]
+    p = pos[..., None, :]
+    dist, n = unit(p - geometry.closest_on_segment(p, frames[..., 0, :], frames[..., 1, :]))
+    h = dist - (bar / 2 + drone_radius + margin)
+    return Rows(n, -gamma * h, xp.zeros(h.shape, dtype=bool) | present[..., None], h)
+
+
+def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
+                 drone_radius: float, margin: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5) -> Rows:
+    """Rows ``[cylinders M | neighbours K | floor 1]`` (m = M + K + 1) for drones at ``pos``.
+
+    pos, vel [..., 3]: the drones' positions and velocities; cyl_center, cyl_vel [..., M, 2], cyl_radius,
+    cyl_present [..., M]; nbr_pos, nbr_vel [..., K, 3], nbr_present [..., K] (the drone itself excluded);
+    gamma: one class-K gain (1/s) per drone [...], or [..., m] in the rows' layout. Every barrier is a
+    surface gap minus ``margin`` (the floor's: z − (floor_z + r_d + margin)).
+    """
+    return concat(_barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel,
+                                 nbr_present, gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
+                                 neighbour_share=neighbour_share))
+
+
+def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
+                   drone_radius: float, margin: float, floor_z: float, neighbour_share) -> list[Rows]:
+    """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]."""
+    xp = geometry.namespace(pos)
+    M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
+    gamma = xp.asarray(gamma, dtype=pos.dtype)
+    if gamma.ndim == pos.ndim - 1:
+        gamma = gamma[..., None]
+    if isinstance(gamma, np.ndarray) and gamma.shape[-1] == 1:
+        # numpy, one gain per drone: it broadcasts in each product as it stands (the same values, no copies).
+        g_cyl = g_nbr = g_floor = gamma
+    else:
+        # Broadcast and sliced per group, even for one gain per drone: the simulator's filter traces to the
+        # program the shipped policy was evaluated with (a bare [..., 1] gain let XLA fuse it differently: not
+        # the same bits).
+        gamma = xp.broadcast_to(gamma, pos.shape[:-1] + (M + K + 1,))
+        g_cyl, g_nbr, g_floor = gamma[..., :M], gamma[..., M:M + K], gamma[..., M + K:]
+    return [
+        cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
+                      margin=margin),
+        neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
+                       share=neighbour_share),
+        floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin),
+    ]
+
+
+def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
+             gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5) -> Rows:
+    """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
+
+    Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
+    (m = M + K + 16). Everything the barriers need is in the observation (relative cylinder positions,
+    their clearance and velocity, relative neighbour positions and velocities, altitude, wall clearances,
+    the current and previous gates' centres and directions), so the simulator and the flight runtime
+    filter from the very same rows. Positions are taken in a frame centred on the drone's horizontal
+    position, with z its altitude above the floor. ``gain`` [..., n] is one class-K gain per drone,
+    applied to all its rows. The gate rows are present when ``gate_bar > 0`` and the observation has
+    that gate (non-zero direction). The gate passed last is kept: right after its plane a drone turning
+    towards the next gate can clip its frame from behind. The walls keep the drone centre inside the
+    arena: without them, swarms of 8 and 16 drones pushed their outer drones out of it (README).
+    """
+    xp = geometry.namespace(obs)
+    numpy = isinstance(obs, np.ndarray)
+    own, cyl, nbr = layout.split(obs)
+    alt = own[..., OWN.slice("altitude")]
+    vel = OWN.get(own, "vel")
+    zero = xp.zeros_like(alt)
+    pos = xp.concat([zero, zero, alt], axis=-1)
+
+    def gate(at, rel_cols, normal_cols):  # gate_rows' (pos, centre, direction, present) for the columns' gate(s)
+        normal = own[..., normal_cols]
+        present = (xp.sum(normal**2, axis=-1) > _GATE_PRESENT_SQ) & (gate_bar > 0)
+        return at, at - own[..., rel_cols], normal, present
+
+    # Under jit: one gate_rows call per gate (current, previous), as stacking them along an axis for one pass
+    # changed the bits of the simulator's filter (another fusion of the compiled program). numpy computes value by
+    # value, so there both gates go through one call, as [..., 2 gates, 3] (half the operations, every step).
+    if numpy:
+        gates = [gate(pos[..., None, :], _GATE_REL_COLS, _GATE_NORMAL_COLS)]
+    else:
+        gates = [gate(pos, OWN.slice(rel), OWN.slice(normal)) for rel, normal in _GATE_FIELDS]
+    rel = CYL.get(cyl, "rel_xy")
+    cyl_radius = geometry.norm(rel) - CYL.get(cyl, "clearance") - drone_radius
+    nbr_pos = NBR.get(nbr, "rel_pos") + pos[..., None, :]
+    nbr_vel = NBR.get(nbr, "rel_vel") + vel[..., None, :]
+    gamma = xp.asarray(gain, dtype=obs.dtype)[..., None]
+    points = _barrier_parts(pos, vel, rel, cyl_radius, CYL.get(cyl, "vel_xy"), CYL.present(cyl), nbr_pos, nbr_vel,
+                            NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
+                            neighbour_share=neighbour_share)
+    if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
+        points = [concat(points)]
+    walls = wall_rows(OWN.get(own, "wall_clearance"), gamma, drone_radius=drone_radius, margin=margin)
+    frames = [gate_rows(*g, gamma[..., None, :] if numpy else gamma, half_opening=gate_half_opening, bar=gate_bar,
+                        drone_radius=drone_radius, margin=margin) for g in gates]
+    if numpy:
+        frames = [_merge_gates(f) for f in frames]
+    return concat([*points, walls, *frames])
+
+
+def _merge_gates(rows: Rows) -> Rows:
+    """Rows [..., g, 5] of g gates (A [..., g, 5, 3]) as the rows [..., 5 g] of one gate after the other."""
+    lead, k = rows.b.shape[:-2], rows.b.shape[-2] * rows.b.shape[-1]
+    return Rows(rows.A.reshape(lead + (k, 3)), *(f.reshape(lead + (k,)) for f in rows[1:]))

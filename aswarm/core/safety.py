@@ -1,0 +1,90 @@
+"""The safety filter's settings: one frozen config for the JAX filter, the numpy flight filter and the bundle.
+
+Held in ``TrainConfig.safety_filter``, passed to both ``filter_from_obs`` (``aswarm.agents.cbf_filter``,
+``aswarm.flight.cbf``) and written field by field to a bundle's manifest (``safety_filter``), from which
+the flight runtime reads it back (:func:`from_manifest`). No JAX here: the flight side imports it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+
+
+@dataclasses.dataclass(frozen=True)
+class SafetyFilterConfig:
+    # Kept on top of the collision distance by every barrier (m).
+    margin: float = 0.1
+    # Class-K gain range (1/s) of the attention-CBF network's output. Above ~2/s a drone commanded at 2 m/s
+    # straight at a cylinder still hit it: the filter assumes velocity follows the command at once, the
+    # onboard controller takes ~0.25 s (tests/test_safety_filter_env.py).
+    gain_min: float = 0.3
+    gain_max: float = 2.0
+    fixed_gain: float = 1.5  # 1/s, the gain of method fixed_cbf
+    # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
+    neighbour_share: float = 0.5
+    floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
+    # The QP: weight of the shared slack, budget of active-set steps, feasibility tolerance (m/s). 16 steps
+    # left no problem unfinished in 20 000 dense random scenes where 12 left 4 (agents/cbf_filter.py).
+    rho: float = 1e6
+    max_iter: int = 16
+    tol: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: a finite number")
+        if not 0 < self.gain_min < self.gain_max:
+            raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
+        for name in ("fixed_gain", "rho", "max_iter", "tol"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
+        if self.margin < 0:
+            raise ValueError(f"invalid safety_filter.margin={self.margin!r}: allowed: >= 0")
+        if not 0 < self.neighbour_share <= 1:
+            raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
+
+
+# Flat TrainConfig fields of runs written before the nested config (config.json, sweep files, flags),
+# and the field of SafetyFilterConfig each became.
+LEGACY_FIELDS = {"gain_min": "gain_min", "gain_max": "gain_max", "fixed_gain": "fixed_gain",
+                 "filter_margin": "margin"}
+
+
+def nest_legacy(fields: Mapping) -> dict:
+    """TrainConfig arguments with the old flat names (:data:`LEGACY_FIELDS`) moved into ``safety_filter``.
+
+    ``safety_filter`` in ``fields`` may be a SafetyFilterConfig or absent (it stays one), or a dict of its
+    fields as config.json holds them (it stays one); a field given both ways in a dict is a ValueError.
+    """
+    out = dict(fields)
+    flat = {LEGACY_FIELDS[k]: out.pop(k) for k in list(out) if k in LEGACY_FIELDS}
+    if not flat:
+        return out
+    nested = out.get("safety_filter")
+    if nested is None or isinstance(nested, SafetyFilterConfig):
+        out["safety_filter"] = dataclasses.replace(nested or SafetyFilterConfig(), **flat)
+        return out
+    both = sorted(set(flat) & set(nested))
+    if both:
+        raise ValueError(f"invalid safety_filter.{both[0]}: given both flat and nested; allowed: one of the two")
+    out["safety_filter"] = {**nested, **flat}
+    return out
+
+
+def manifest_fields(config: SafetyFilterConfig) -> dict:
+    """The config as a bundle manifest's ``safety_filter`` entries (the field names, as numbers)."""
+    return dataclasses.asdict(config)
+
+
+def from_manifest(safety: Mapping) -> SafetyFilterConfig:
+    """The config a manifest's ``safety_filter`` section holds. Every field has been written since format 1
+    (bundles from before this config have them too), so a missing one is an error, not a default."""
+    missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
+    if missing:
+        raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "
+                         "aswarm export (re-export the checkpoint)")
+    kinds = {f.name: f.type for f in dataclasses.fields(SafetyFilterConfig)}
+    return SafetyFilterConfig(**{k: int(safety[k]) if kinds[k] in (int, "int") else float(safety[k]) for k in kinds})
