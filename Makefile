@@ -20,7 +20,7 @@ train: $(STAMP)
 	$(VENV)/bin/aswarm train --scenario $(SCENARIO) $(ARGS)
 
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=20
 
 bench: $(STAMP)
 	$(VENV)/bin/aswarm bench --peer-venv .venv-crazyflow $(ARGS)

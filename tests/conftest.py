@@ -10,3 +10,14 @@ import jax  # noqa: E402
 # turns the repeats into cache hits.
 jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), "aswarm-test-jax-cache"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+# The longest files first. `make test` runs `pytest -n 2 --dist loadfile`: each file runs whole on one of two
+# workers (its module fixtures, such as a tiny trained run, are built once), and handing out the long files
+# first keeps both workers busy to the end (a long file started last left one worker idle for minutes).
+LONGEST_FIRST = ("test_train.py", "test_sharding.py", "test_recovery.py", "test_sweep.py", "test_env.py",
+                 "test_flight.py", "test_paper_table.py", "test_export.py", "test_plots.py")
+
+
+def pytest_collection_modifyitems(items) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file is kept
