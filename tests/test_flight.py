@@ -24,9 +24,8 @@ from aswarm import cli, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
 from aswarm.analysis import evaluate
-from aswarm.core import geometry
-from aswarm.envs import swarm_env
-from aswarm.flight import bench, estimator, export, observe, sitl
+from aswarm.core import geometry, observation
+from aswarm.flight import bench, estimator, export, sitl
 from aswarm.flight import bundle as fb
 from aswarm.flight import fly as ffly
 from aswarm.flight import runtime as fc
@@ -152,14 +151,6 @@ def test_flight_package_imports_no_jax_flax_mujoco_or_brax(synthetic):
     assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr
 
 
-def test_flight_tables_are_the_simulators():
-    assert observe.OWN_FIELDS == swarm_env.OWN_FIELDS
-    assert observe.CYL_FIELDS == swarm_env.CYL_FIELDS
-    assert observe.NBR_FIELDS == swarm_env.NBR_FIELDS
-    for m, k in ((8, 3), (0, 0), (3, 1)):
-        assert observe.ObsLayout(m, k).describe() == swarm_env.ObsLayout(m, k).describe()
-
-
 # ------------------------------------------------------------------ parity with the simulator and JAX
 def _states(race):
     """All recorded drone-states of both rollouts, as [S, n, ...] (S = steps x worlds)."""
@@ -177,7 +168,7 @@ def test_numpy_observation_equals_the_simulators(race):
     cyl_pos, cyl_vel = geometry.cylinders_at(lay.cyl_center[s.world], lay.cyl_axis[s.world],
                                              lay.cyl_amplitude[s.world], lay.cyl_omega[s.world],
                                              lay.cyl_phase[s.world], s.time)
-    obs = observe.observe(s.pos.astype(float), s.quat, s.vel, s.ang_vel, lay.waypoints[s.world], normals[s.world],
+    obs = observation.observe(s.pos.astype(float), s.quat, s.vel, s.ang_vel, lay.waypoints[s.world], normals[s.world],
                           s.target, ~s.finished, cyl_pos, cyl_vel, lay.cyl_radius[s.world], lay.cyl_present[s.world],
                           race.env.config.cf.collision_radius, race.env.config.arena_low, race.env.config.arena_high)
     assert obs.shape == s.obs.shape and s.obs.shape[1:] == (n, race.env.observation_size)
@@ -202,7 +193,7 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
                         jnp.zeros(()))
     lay = jax.tree.map(np.asarray, s.layout)
     normals = np.broadcast_to(geometry.horizontal(lay.gate_yaw)[None], lay.waypoints.shape)
-    got = observe.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
+    got = observation.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
                           lay.cyl_center, np.zeros_like(lay.cyl_center), lay.cyl_radius, lay.cyl_present,
                           env.config.cf.collision_radius, env.config.arena_low, env.config.arena_high,
                           max_neighbours=k)

@@ -22,7 +22,7 @@ import numpy as np
 from flax import struct
 
 from aswarm.core import geometry as geo
-from aswarm.core.layout import CYL_FIELDS, MIN_TARGET_DIST, NBR_FIELDS, OWN_FIELDS, ObsLayout  # noqa: F401
+from aswarm.core.layout import ObsLayout
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
 from aswarm.envs.config import EnvConfig

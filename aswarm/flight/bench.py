@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from aswarm.core.layout import ObsLayout
+from aswarm.core.observation import observe
 from aswarm.flight import estimator, policy
 from aswarm.flight import runtime as fc
 from aswarm.flight.bundle import Bundle, bundle_from, make_manifest
 from aswarm.flight.cbf import filter_from_obs
-from aswarm.flight.observe import ObsLayout, observe
 
 
 def synthetic_bundle(num_agents: int = 4, num_cylinders: int = 8, num_gates: int = 4, seed: int = 0,

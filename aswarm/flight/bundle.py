@@ -4,7 +4,7 @@
 and writes it with :func:`write_bundle`; the flight side reads it with :func:`load_bundle`, which
 refuses anything it cannot run exactly: another format or version, a hash that does not match the
 arrays, missing, misshapen or non-finite arrays, or an observation layout other than the one
-:mod:`aswarm.flight.observe` builds. Array names are the flax parameter paths without the
+:mod:`aswarm.core.observation` builds. Array names are the flax parameter paths without the
 ``params`` level (``actor/MLP_0/Dense_0/kernel``, ``cbf/W_Q/kernel``) plus ``obs_norm/mean`` and
 ``obs_norm/std``. Nothing is pickled: the npz is read with ``allow_pickle=False``.
 """
@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from aswarm.core.layout import OBS_NORM_CLIP
+from aswarm.core.layout import OBS_NORM_CLIP, ObsLayout
 from aswarm.core.safety import SafetyFilterConfig, from_manifest
-from aswarm.flight.observe import ObsLayout
 from aswarm.flight.policy import PolicyWeights, weights_from_arrays
 
 FORMAT = "aswarm-policy-bundle"

@@ -19,11 +19,11 @@ import numpy as np
 
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import ACTIVATIONS
+from aswarm.core.layout import ObsLayout
 from aswarm.core.safety import manifest_fields
 from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.swarm_env import SwarmEnv
 from aswarm.flight import bundle as fb
-from aswarm.flight.observe import ObsLayout
 
 
 def policy_arrays(params: dict, obs_norm) -> dict[str, np.ndarray]:
@@ -113,7 +113,7 @@ def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Pa
     env = env or make_env(config)
     if env.obs_layout.describe() != ObsLayout(env.obs_layout.num_cylinders,
                                                  env.obs_layout.num_neighbours).describe():
-        raise ValueError("the simulator's observation layout differs from aswarm.flight.observe's: update the flight "
+        raise ValueError("the simulator's observation layout differs from aswarm.core.layout's: update the flight "
                          "runtime together with the environment")
     text = config_text if config_text is not None else config_json(config, env)
     manifest = build_manifest(config, env, source=source, trained_updates=trained_updates, config_text=text)

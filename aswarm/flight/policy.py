@@ -21,8 +21,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from aswarm.core.layout import OBS_NORM_CLIP
-from aswarm.flight.observe import PRESENT_THRESHOLD, ObsLayout
+from aswarm.core.layout import OBS_NORM_CLIP, PRESENT_THRESHOLD, ObsLayout
 
 NORMALIZER_MAX_ABS = OBS_NORM_CLIP
 _SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)

@@ -28,9 +28,9 @@ import dataclasses
 import numpy as np
 
 from aswarm.core.geometry import gate_crossed, horizontal
+from aswarm.core.observation import observe
 from aswarm.flight import cbf, estimator, policy
 from aswarm.flight.bundle import Bundle
-from aswarm.flight.observe import observe
 
 
 @dataclasses.dataclass(frozen=True)

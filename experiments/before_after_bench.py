@@ -1,0 +1,37 @@
+"""Throughput of two checkouts in the same session (BENCHMARKS.md, "Issue #11: before and after").
+
+Run it once per tree, alternating, each in a fresh process so that the package comes from that tree:
+
+    git worktree add /tmp/old d3eaf8b
+    for t in /tmp/old . /tmp/old .; do PYTHONPATH=$t .venv/bin/python experiments/before_after_bench.py $t train; done
+
+Prints one JSON line: env-steps/s of the race env at 1024 worlds (``env``) and/or of the default trainer
+(``train``, 10 updates after the compile, every CPU core a device as ``aswarm train`` lays it out).
+"""
+
+import json
+import os
+import sys
+
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+try:
+    from aswarm.analysis import bench
+except ImportError:  # trees from before the layout of issue #11
+    from aswarm import bench
+from aswarm.agents.config import TrainConfig
+
+
+def main() -> None:
+    tree, which = sys.argv[1], (sys.argv[2] if len(sys.argv) > 2 else "both")
+    out = {"tree": tree}
+    if which in ("env", "both"):
+        out["env_1024"] = bench.time_env("race", 1024, 100).env_steps_per_s
+    if which in ("train", "both"):
+        config = TrainConfig(scenario="race", method="attention_cbf")
+        out["train"] = bench.time_trainer(config, updates=10)["env_steps_per_s"]
+    print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()
