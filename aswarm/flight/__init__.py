@@ -10,11 +10,11 @@ simulator and the trainer would:
 | ``estimator.py`` | velocity and body angular rate from timestamped poses |
 | (``aswarm.core``) | the observation layout and builder, the geometry and the barrier rows, shared with the simulator |
 | ``policy.py`` | observation normalizer, actor and attention-CBF network (forward passes) |
-| ``cbf.py`` | the CBF safety filter's QP in numpy (its rows: ``aswarm.core.barriers``, as ``aswarm.agents.cbf_filter``) |
+| ``cbf.py`` | the CBF safety filter's QP in numpy (rows from ``aswarm.core.barriers``, as the JAX filter) |
 | ``runtime.py`` | ``FlightController``: poses in, bounded world-frame velocity setpoints out, with safety checks |
 | ``fly.py`` | ``aswarm fly``: mocap sources, the Crazyflie link (cflib, imported lazily), the flight loop |
 | ``bench.py`` | per-step cost of the runtime |
-| ``export.py``, ``sitl.py`` | the bridge from training: write a bundle, fly it in the simulator (these two use JAX; the package does not import them) |
+| ``export.py``, ``sitl.py`` | write a bundle, fly it in the simulator (JAX; the package imports neither) |
 
 Every array function takes leading batch axes (worlds, drones), so software-in-the-loop runs many
 episodes at once through the same code that flies.
