@@ -305,6 +305,15 @@ def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):
     assert cli.main(["train", "--env", "gains.kp_rate=nan"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["aswarm train: error: invalid gains.kp_rate='nan': allowed: a finite number"]
+    # Physical nonsense is refused by the env config in one line (MuJoCo's own error for a negative mass is
+    # several lines and names no flag).
+    for item, line in [("cf.mass=-1", "invalid cf.mass=-1.0: must be > 0"),
+                       ("cf.inertia=1e-5,0,1e-5", "invalid cf.inertia=(1e-05, 0.0, 1e-05): must be > 0"),
+                       ("cf.thrust_to_weight=0.9", "invalid cf.thrust_to_weight=0.9: must be > 1"),
+                       ("gains.max_tilt_deg=95", "invalid gains.max_tilt_deg=95.0: must be in (0, 90) degrees")]:
+        assert cli.main(["train", "--env", item]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("aswarm train: error: " + line), err
 
 
 def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):

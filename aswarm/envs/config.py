@@ -123,6 +123,17 @@ def validate(c: EnvConfig) -> None:
     _check_finite("", c)
     _check_finite("cf.", c.cf)
     _check_finite("gains.", c.gains)
+    # Physical constants and gains: a zero or negative one has no meaning (MuJoCo itself would refuse a mass
+    # of 0 with a multi-line error), and a drone that cannot lift its weight never takes off.
+    for prefix, obj in (("cf.", c.cf), ("gains.", c.gains)):
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if any(isinstance(x, (int, float)) and x <= 0 for x in (v if isinstance(v, tuple) else (v,))):
+                _fail(prefix + f.name, v, "must be > 0")
+    if c.cf.thrust_to_weight <= 1:
+        _fail("cf.thrust_to_weight", c.cf.thrust_to_weight, "must be > 1 (the drone must lift its own weight)")
+    if not c.gains.max_tilt_deg < 90:
+        _fail("gains.max_tilt_deg", c.gains.max_tilt_deg, "must be in (0, 90) degrees")
     for name in ("num_agents", "num_obstacles", "num_moving", "min_moving", "num_gates",
                  "sim_freq", "ctrl_freq", "policy_freq", "layout_draws", "max_neighbours"):
         if not isinstance(getattr(c, name), int) or isinstance(getattr(c, name), bool):
