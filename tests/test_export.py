@@ -49,7 +49,7 @@ def run_dir(tmp_path_factory):
                         std=jnp.asarray(rng.uniform(0.1, 3.0, d), jnp.float32))
     path = tmp_path_factory.mktemp("runs") / "race-run"
     path.mkdir()
-    runner.write_config(path, config, agent.env.config)
+    runner.write_config(path, config)
     checkpoint.save(checkpoint.manager(path), 7, PolicyState(params, norm, jnp.asarray(7, jnp.int32)))
     return path
 

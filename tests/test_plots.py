@@ -138,7 +138,7 @@ def _fake_run(tmp_path, method: str):
     agent = Agent.build(config)
     run = tmp_path / method
     run.mkdir()
-    runner.write_config(run, config, agent.env.config)
+    runner.write_config(run, config)
     obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((agent.env.observation_size,), jnp.float32))
     params = jax.tree.map(lambda x: np.full(x.shape, 0.01, x.dtype), jax.eval_shape(agent.init_params,
                                                                                  jax.random.PRNGKey(0)))

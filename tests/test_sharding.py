@@ -17,7 +17,7 @@ import pytest
 from curves import assert_same_curve, assert_same_params
 
 from aswarm.analysis import evaluate
-from aswarm.training import sweep
+from aswarm.training import runner
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_SWEEP = ROOT / "sweeps" / "ci_tiny.toml"
@@ -84,7 +84,7 @@ def _env(devices: int) -> dict:
 def _assert_same(a: Path, b: Path) -> None:
     """Metrics of every update and final params of every trial agree to float tolerance."""
     for t in TRIALS:
-        rows_a, rows_b = sweep.read_rows(a / "trials" / t), sweep.read_rows(b / "trials" / t)
+        rows_a, rows_b = runner.read_metrics(a / "trials" / t), runner.read_metrics(b / "trials" / t)
         assert len(rows_a) == len(rows_b) == 4
         for name in rows_a[0]:
             assert_same_curve([r[name] for r in rows_b], [r[name] for r in rows_a], SCALE_RTOL, f"{b.name}/{t} {name}")

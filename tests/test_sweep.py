@@ -12,7 +12,7 @@ from aswarm import cli
 from aswarm.agents import hparams
 from aswarm.agents.train import make_train
 from aswarm.analysis import evaluate
-from aswarm.training import checkpoint, sweep
+from aswarm.training import checkpoint, runner, sweep
 
 CI_SWEEP = Path(__file__).resolve().parent.parent / "sweeps" / "ci_tiny.toml"
 HEAD = 'scenario = "hover"\ntotal_steps = 128\nseeds = [0, 1]\n'
@@ -81,7 +81,7 @@ def test_tiny_sweep_resumes_and_equals_trials_run_one_by_one(tmp_path):
         for seed in spec.seeds:
             ts, metrics = chunk_fn(init_fn(jax.random.PRNGKey(seed)), config.num_updates)
             run = out / "trials" / f"c{config_index:02d}-s{seed}"
-            rows = sweep.read_rows(run)
+            rows = runner.read_metrics(run)
             assert [r["update"] for r in rows] == [1, 2, 3, 4]
             for name, values in metrics.items():
                 # vmapped over trials, the same sums in another order (seen in CI: cost excess 1.3e-5 apart
@@ -161,7 +161,7 @@ def test_one_host_loop_marks_a_diverged_trial_and_stops_when_every_trial_has(tmp
     assert (dirs[1] / "DIVERGED").read_text().strip().endswith("at update 3")
     assert (dirs[0] / "DIVERGED").read_text().strip().endswith("at update 5")
     assert "g: t1 diverged at update 3" in logs
-    rows = [sweep.read_rows(d) for d in dirs]
+    rows = [runner.read_metrics(d) for d in dirs]
     assert [r["update"] for r in rows[0]] == [r["update"] for r in rows[1]] == [1, 2, 3, 4]
     assert [r["train/loss"] for r in rows[0]] == [1.0, 2.0, 3.0, 4.0]
     assert np.isnan(rows[1][2]["train/loss"]) and rows[1][1]["train/loss"] == 2.0
@@ -171,7 +171,7 @@ def test_one_host_loop_marks_a_diverged_trial_and_stops_when_every_trial_has(tmp
     with pytest.raises(runner.TrainingDiverged):
         runner.run_loop(program, cfg, tmp_path / "g", dirs, progress=False, log=logs.append, label="g")
     assert "g: resumed at update 4" in logs
-    assert [r["update"] for r in sweep.read_rows(dirs[0])] == [1, 2, 3, 4]
+    assert [r["update"] for r in runner.read_metrics(dirs[0])] == [1, 2, 3, 4]
     assert not list(tmp_path.rglob("*.tmp"))
 
 

@@ -157,8 +157,9 @@ def _start_grid(n: int, spacing: float) -> np.ndarray:
     return np.stack([row * spacing, (col - (in_row - 1) / 2) * spacing], -1)
 
 
-def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
-    """Draw an episode's layout; pure and jittable (``cfg`` and ``geo`` are static)."""
+def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitude, moving_omega) -> Layout:
+    """Draw an episode's layout; pure and jittable (``cfg`` and ``geo`` are static). The moving cylinders'
+    amplitude (m) and angular frequency (rad/s) are the env params' (data, ``EnvParams``)."""
     kind = SCENARIOS[cfg.scenario].kind
     j = cfg.layout_jitter
     n, m = cfg.num_agents, cfg.num_cylinders
@@ -196,7 +197,7 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
     center = draws[pick]
     n_moving = jax.random.randint(k_count, (), cfg.min_moving, cfg.num_moving + 1)
     present = static | (jnp.arange(m) - cfg.num_obstacles < n_moving)
-    omega = jnp.where(static, 0.0, 2 * np.pi / cfg.moving_period)
+    omega = jnp.where(static, 0.0, moving_omega)
 
     # Starts: behind the start point (a column or a grid), facing the direction of travel.
     heading = jnp.asarray(geo.start_heading)
@@ -230,7 +231,7 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry) -> Layout:
 
     return Layout(
         start_pos=start_pos, waypoints=waypoints, gate_pos=gate_pos, gate_yaw=gate_yaw,
-        cyl_center=center, cyl_axis=normal, cyl_amplitude=jnp.where(static, 0.0, cfg.moving_amplitude),
+        cyl_center=center, cyl_axis=normal, cyl_amplitude=jnp.where(static, 0.0, moving_amplitude),
         cyl_omega=omega, cyl_phase=jax.random.uniform(k_phase, (m,), maxval=2 * np.pi),
         cyl_radius=jnp.full((m,), cfg.obstacle_radius), cyl_height=jnp.full((m,), cfg.obstacle_height),
         cyl_present=present,

@@ -118,11 +118,7 @@ class SwarmEnv:
         if params is not None:
             params = check_params(params, self.default_params)
         p = self.params(params)
-        layout = sample_layout(key, cfg, self.geometry)
-        # Cylinder motion is data: the layout's moving cylinders take the params' amplitude and frequency.
-        static = np.arange(cfg.num_cylinders) < cfg.num_obstacles
-        layout = layout.replace(cyl_amplitude=jnp.where(static, 0.0, p.moving_amplitude),
-                                cyl_omega=jnp.where(static, 0.0, p.moving_omega))
+        layout = sample_layout(key, cfg, self.geometry, p.moving_amplitude, p.moving_omega)
         drones = DroneState(
             pos=layout.start_pos,
             quat=jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)),

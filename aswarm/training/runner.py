@@ -32,11 +32,8 @@ def default_run_dir(config: TrainConfig) -> Path:
     return Path("runs") / f"{config.scenario}-{config.method}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def write_config(run_dir: Path, config: TrainConfig, env_config=None) -> None:
-    """``config.json``: the training config and the run's full resolved env (``run_config``). ``env_config``
-    (an agent's ``env.config``, for callers that pass it) must be the config's own env."""
-    if env_config is not None and env_config != config.env:
-        raise ValueError("invalid env_config: it differs from config.env; allowed: the run's own env (config.env)")
+def write_config(run_dir: Path, config: TrainConfig) -> None:
+    """``config.json``: the training config and the run's full resolved env (``config.env``, ``run_config``)."""
     run_config.write(run_dir, config)
 
 

@@ -449,11 +449,6 @@ def run(spec: SweepSpec, out: str | Path, progress: bool = True, max_updates: in
 # --- results --------------------------------------------------------------------------------------------
 
 
-def read_rows(run_dir: Path) -> list[dict]:
-    path = Path(run_dir) / "metrics.jsonl"
-    return [json.loads(r) for r in path.read_text().splitlines() if r] if path.exists() else []
-
-
 def final_metrics(rows: list[dict], last: int) -> dict:
     """Success, collision and return over the last ``last`` updates, weighted by the episodes that ended."""
     tail = rows[-last:]
@@ -476,11 +471,13 @@ def _stats(xs: Sequence[float]) -> dict:
 
 def summarize(spec: SweepSpec, out: Path) -> dict:
     """Per configuration: the final metrics' mean and spread over seeds; configurations ranked best first."""
+    from aswarm.training.runner import read_metrics  # JAX: parsing a sweep file stays light
+
     trials = spec.trials
     per_config = []
     for ci, (label, point) in enumerate(zip(spec.labels, spec.points)):
         mine = [t for t in trials if t.config_index == ci]
-        finals = {t.name: final_metrics(read_rows(out / "trials" / t.name), spec.last_updates) for t in mine}
+        finals = {t.name: final_metrics(read_metrics(out / "trials" / t.name), spec.last_updates) for t in mine}
         diverged = [t.name for t in mine if (out / "trials" / t.name / "DIVERGED").exists()]
         entry = {"config": ci, "label": label, "point": point, "trials": finals, "diverged": diverged}
         entry.update({m: _stats([f[m] for f in finals.values()]) for m in RANK_METRICS})
@@ -538,9 +535,11 @@ def plot_curves(results: dict, out: Path) -> Path:
 
     panels = [("episode/episode_return", "episode return"), ("episode/success", "success rate"),
               ("episode/collision", "collision rate")]
+    from aswarm.training.runner import read_metrics
+
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
     for ci, e in enumerate(sorted(results["configs"], key=lambda e: e["config"])):
-        runs = [read_rows(out / "trials" / name) for name in e["trials"]]
+        runs = [read_metrics(out / "trials" / name) for name in e["trials"]]
         n = min(len(r) for r in runs)
         if n == 0:
             continue
