@@ -125,7 +125,8 @@ def cmd_sitl(args: argparse.Namespace) -> int:
     from aswarm.flight import sitl
 
     result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
-                           noise=args.noise, latency=args.latency, env_overrides=args.env or [],
+                           noise=args.noise, latency_ms=args.latency, mass_scale=args.mass_scale,
+                           thrust_scale=args.thrust_scale, env_overrides=args.env or [],
                            progress=not args.json)
     print(json.dumps(result) if args.json else sitl.format_table(result))
     return 0
@@ -266,8 +267,12 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("--seed", type=int, default=EVAL_SEED, help="evaluation seed, as for eval (same layouts)")
     si.add_argument("--noise", type=float, default=0.0, metavar="METRES",
                     help="std of Gaussian noise on the positions the runtime sees")
-    si.add_argument("--latency", type=int, default=0, metavar="STEPS",
-                    help="the runtime sees poses this many control steps old")
+    si.add_argument("--latency", type=float, default=0.0, metavar="MS",
+                    help="loop latency: whole control steps of it age the poses the runtime sees, the rest delays "
+                         "its commands on the drone (a multiple of the onboard controller's tick, 10 ms)")
+    si.add_argument("--mass-scale", type=float, default=1.0, help="the simulated drone's mass over the nominal")
+    si.add_argument("--thrust-scale", type=float, default=1.0,
+                    help="the simulated drone's thrust constant over the nominal (what the controller assumes)")
     si.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
     si.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     si.set_defaults(func=cmd_sitl)

@@ -1,68 +1,73 @@
-"""Step responses of the onboard velocity controller in MJX (a picture of what tests/test_controller.py checks).
+"""Step responses of the onboard controller models side by side (0 -> 1 m/s in x and in z, from hover), and
+the characteristics the safety filter and the MPC are fitted to.
 
     python experiments/controller_step_response.py --out experiments/results/controller_step.png
+
+Models: the firmware's controller_pid with rotor lag (the default drone), the same without rotor lag, and the
+geometric controller every run before issue #12 trained on. Prints one Markdown table of
+``analysis.step_response.characterise`` per model.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 
-from aswarm.envs.crazyflie import CrazyflieParams  # noqa: E402
-from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state  # noqa: E402
-from aswarm.envs.mjx_import import mjx  # noqa: E402
-from aswarm.envs.onboard_controller import ControllerGains, velocity_controller  # noqa: E402
+from aswarm import envs  # noqa: E402
+from aswarm.analysis import step_response  # noqa: E402
+from aswarm.core.safety import SafetyFilterConfig  # noqa: E402
+from aswarm.envs.config import LEGACY_DRONE  # noqa: E402
 
 
-def step_response(cmd: np.ndarray, seconds: float = 2.0, sim_freq: int = 250):
-    cf, gains = CrazyflieParams(), ControllerGains()
-    _, mx = physics_model(1, sim_freq, cf)
-    s0 = DroneState(pos=jnp.array([[0.0, 0.0, 1.0]]), quat=jnp.array([[1.0, 0, 0, 0]]), vel=jnp.zeros((1, 3)),
-                    ang_vel=jnp.zeros((1, 3)))
-
-    @jax.jit
-    def run(cmd):
-        def body(d, _):
-            rpm = velocity_controller(drone_state(d, 1), cmd[None], gains, cf)
-            d = physics_step(mx, d, rpm, cf)
-            return d, (drone_state(d, 1).vel[0], rpm[0])
-        return jax.lax.scan(body, set_drone_state(mjx.make_data(mx), s0), None, length=int(seconds * sim_freq))[1]
-
-    vel, rpm = run(jnp.asarray(cmd, jnp.float32))
-    return np.arange(1, len(vel) + 1) / sim_freq, np.asarray(vel), np.asarray(rpm), cf.max_rpm
+def models() -> dict:
+    pid = envs.preset("hover")
+    return {
+        "firmware PID, rotor lag 0.136 s (default)": pid,
+        "firmware PID, no rotor lag": dataclasses.replace(pid, cf=dataclasses.replace(pid.cf, motor_tau=0.0)),
+        "geometric (before issue #12)": envs.preset("hover", **LEGACY_DRONE),
+    }
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("experiments/results/controller_step.png"))
     args = p.parse_args()
-    fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True)
-    for axis, name in enumerate("xyz"):
-        cmd = np.zeros(3)
-        cmd[axis] = 1.5
-        t, vel, rpm, max_rpm = step_response(cmd)
-        ax = axes[0, axis]
-        ax.plot(t, vel[:, axis], label=f"v{name}")
-        ax.axhline(1.5, color="k", lw=0.8, ls="--")
-        ax.axhspan(1.35, 1.65, color="g", alpha=0.1, label="±10 %")
-        ax.set_title(f"0 → 1.5 m/s on {name}")
-        ax.set_ylabel("m/s")
-        ax.legend(loc="lower right")
-        axes[1, axis].plot(t, rpm)
-        axes[1, axis].axhline(max_rpm, color="r", lw=0.8, ls="--")
-        axes[1, axis].set_ylabel("motor RPM")
-        axes[1, axis].set_xlabel("s")
+    fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), sharex=True)
+    rows = []
+    for i, (name, cfg) in enumerate(models().items()):
+        for col, (axis, label) in enumerate(((0, "x"), (2, "z"))):
+            cmd = [0.0, 0.0, 0.0]
+            cmd[axis] = 1.0
+            r = step_response.step_response(cfg, cmd, seconds=2.5)
+            axes[0, col].plot(r["t"], r["vel"][:, axis], color=f"C{i}", label=name)
+            axes[1, col].plot(r["t"], r["tilt"] if axis == 0 else r["rpm"].mean(-1), color=f"C{i}")
+            axes[0, col].set_title(f"0 -> 1 m/s in {label}")
+        c = step_response.characterise(cfg)
+        sf = SafetyFilterConfig().fitted(c.lag_xy) if "no rotor lag" not in name else None
+        rows.append(f"| {name} | {c.lag_xy:.2f} | {c.lag_z:.2f} | {c.accel_xy:.2f} | {c.climb:.2f} | {c.sink:.2f} | "
+                    f"{c.stop_distance:.2f} | {f'{sf.gain_max:.2f}' if sf else '-'} |")
+    for col in range(2):
+        axes[0, col].axhline(1.0, color="k", lw=0.8, ls="--")
+        axes[0, col].set_ylabel("velocity (m/s)")
+        axes[1, col].set_xlabel("s")
+    axes[1, 0].axhline(20.0, color="r", lw=0.8, ls="--", label="firmware tilt limit 20 deg")
+    axes[1, 0].set_ylabel("tilt (deg)")
+    axes[1, 0].legend(loc="upper right")
+    axes[1, 1].set_ylabel("mean rotor speed (RPM)")
+    axes[0, 0].legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=100)
+    print("| model | lag xy (s) | lag z (s) | accel xy (m/s²) | climb (m/s²) | sink (m/s²) | stop from 2 m/s (m) "
+          "| filter gain max (1/s) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("\n".join(rows))
     print(f"wrote {args.out}")
 
 

@@ -382,12 +382,12 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     cfg = SafetyFilterConfig(margin=0.2, gain_min=0.5, gain_max=3.0, neighbour_share=0.7, max_iter=12)
     assert from_manifest(json.loads(json.dumps(manifest_fields(cfg)))) == cfg
     # A bundle exported before the config (the entries it always had, as the pretrained policy's) reads back
-    # as the old defaults; one that lacks an entry is a one-line error.
+    # as the old defaults, as used (not to be fitted again); one that lacks an entry is a one-line error.
     old = {"method": "attention_cbf", "enabled": True, "gain_source": "attention", "fixed_gain": 1.5,
            "gain_min": 0.3, "gain_max": 2.0, "penalty_max": 2.0, "margin": 0.1, "drone_radius": 0.06,
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
-    assert from_manifest(old) == SafetyFilterConfig()
+    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).

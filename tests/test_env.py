@@ -11,6 +11,7 @@ import pytest
 from aswarm import envs
 from aswarm.core import geometry as geo
 from aswarm.envs.dynamics import DroneState, set_drone_state
+from aswarm.envs.randomization import OFF
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +92,7 @@ def test_vmapped_autoreset_rollout_in_scan():
 
 
 def test_race_gate_passage_advances_target_and_pays_bonus():
-    env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
+    env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -119,7 +120,7 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
 
 
 def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
-    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0)
+    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -137,7 +138,7 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
 
 
 def test_staggered_track_start_holds_each_drone_until_its_release_time():
-    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50)
+    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     start = np.asarray(s.layout.start_pos)
@@ -146,7 +147,7 @@ def test_staggered_track_start_holds_each_drone_until_its_release_time():
         s = step(s, cmd)
         assert float(s.reward[2]) == 0.0 and float(s.cost[2]) == 0.0
     z = np.asarray(s.data.qpos.reshape(3, 7)[:, 2]) - start[:, 2]
-    assert z[0] > 0.02 and 0.0 < z[1] < z[0] / 5 and abs(z[2]) < 1e-3, z  # the controller lags the command
+    assert z[0] > 0.005 and 0.0 < z[1] < z[0] / 5 and abs(z[2]) < 1e-3, z  # the controller lags the command
 
 
 def _layouts(env, episodes: int = 512):
@@ -196,14 +197,15 @@ def test_number_of_drones_is_configurable(n):
 
 
 def test_paper_reward_is_inverse_distance(race):
-    env = envs.make("race", reward="paper", start_interval=0.0)  # every drone flying from the first step
+    # Every drone flying from the first step; observations without motion-capture noise.
+    env = envs.make("race", reward="paper", start_interval=0.0, randomize=OFF)
     s = env.step(env.reset(jax.random.PRNGKey(0)), jnp.zeros((4, 3)))
     d = jnp.linalg.norm(s.obs[:, :3], axis=-1)
     np.testing.assert_allclose(s.reward, 1 / (d + 0.001), rtol=1e-4)
 
 
 def test_cost_rises_inside_the_safety_margin():
-    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     gap = 0.05  # inside the 0.15 m margin, outside collision
@@ -222,8 +224,9 @@ def test_cost_rises_inside_the_safety_margin():
         ("race", {"num_agents": -3}, r"invalid num_agents=-3"),
         ("race", {"num_obstacles": 40}, r"cannot place num_obstacles \+ num_moving = 40 cylinders .* at most 13 fit"),
         ("race", {"max_speed": math.nan}, r"invalid max_speed=nan: must be a finite number"),
-        ("race", {"policy_freq": 60}, r"invalid policy_freq=60: must divide ctrl_freq=250"),
-        ("race", {"sim_freq": 100, "ctrl_freq": 50}, r"invalid sim_freq=100: must be >= 240 Hz"),
+        ("race", {"policy_freq": 60}, r"invalid policy_freq=60: must divide ctrl_freq=100"),
+        ("race", {"sim_freq": 100, "ctrl_freq": 50, "controller": "geometric"},
+         r"invalid sim_freq=100: must be >= 240"),
         ("race", {"warp_drive": 1}, r"unknown env config field 'warp_drive'"),
         ("race", {"reward": "money"}, r"invalid reward='money': allowed: shaped, paper"),
         ("obstacles", {"layout_draws": 0}, r"invalid layout_draws=0: must be >= 1"),

@@ -8,16 +8,30 @@ import pytest
 from aswarm import envs
 from aswarm.agents import cbf_filter
 from aswarm.agents.config import TrainConfig
+from aswarm.analysis.step_response import characterise
 from aswarm.core.safety import SafetyFilterConfig
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import DroneState, set_drone_state
+from aswarm.envs.randomization import OFF
 
 MARGIN = 0.05
 
 
-def _run(env, state, command, use_filter, seconds=3.0, gain=2.0, margin=MARGIN, log=None):
+def _make(name, **overrides):
+    """The scenario's env with exact observations: the filter's guarantees are about what it is shown (the
+    robustness to noise and latency is measured in SITL, experiments/robustness.py)."""
+    return envs.make(name, randomize=OFF, **overrides)
+
+
+def _fitted(env) -> SafetyFilterConfig:
+    """The default filter fitted to ``env``'s drone, as training and export fit it."""
+    return SafetyFilterConfig().fitted(characterise(env.config).lag_xy)
+
+
+def _run(env, state, command, use_filter, seconds=3.0, gain=None, margin=MARGIN, log=None, until=None):
     step = jax.jit(env.step)
     c = env.config
+    gain = _fitted(env).gain_max if gain is None else gain
     steps = round(seconds * c.policy_freq)
     safety = SafetyFilterConfig(margin=margin)
     filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], gain),
@@ -28,7 +42,7 @@ def _run(env, state, command, use_filter, seconds=3.0, gain=2.0, margin=MARGIN, 
         if log is not None:
             log.append(res)
         state = step(state, res.u if use_filter else command)
-        if state.done:
+        if state.done or (until is not None and until(state)):
             break
     return state
 
@@ -43,7 +57,7 @@ def _place(env, state, pos):
 
 def _gate_approach(lateral: float):
     """One drone 1.2 m before gate 0 on its axis, shifted sideways by ``lateral``, and the command along the axis."""
-    env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
+    env = _make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -54,7 +68,7 @@ def _gate_approach(lateral: float):
 
 @pytest.mark.parametrize("use_filter", [True, False])
 def test_flying_at_a_gate_post_stops_short_only_with_the_filter(use_filter):
-    env, s, cmd = _gate_approach(envs.make("race").config.gate_half_opening + 0.02)  # at the side bar
+    env, s, cmd = _gate_approach(_make("race").config.gate_half_opening + 0.02)  # at the side bar
     s = _run(env, s, cmd, use_filter)
     if use_filter:
         assert not bool(s.tracker.collided[0])
@@ -64,16 +78,20 @@ def test_flying_at_a_gate_post_stops_short_only_with_the_filter(use_filter):
 
 def test_a_centred_gate_passage_is_only_slowed_by_the_gate_rows():
     """Approaching the opening brings every bar closer, so the rows slow the drone (to ~1 m/s at gain 2 with
-    the margin 0.05: v <= gain * h * dist / d along the axis) but never push it sideways."""
+    the margin 0.05: v <= gain * h * dist / d along the axis, and in proportion at the fitted gain) but never
+    push it sideways."""
     env, s, cmd = _gate_approach(0.0)
     log = []
-    s = _run(env, s, cmd, True, seconds=1.2, log=log)
+    s = _run(env, s, cmd, True, seconds=3.0, log=log, until=lambda s: int(s.tracker.target[0]) == 1)
     assert int(s.tracker.target[0]) == 1 and not bool(s.tracker.collided[0])
     axis = np.asarray(cmd[0]) / np.linalg.norm(cmd[0])
     u = np.array([np.asarray(r.u[0]) for r in log])
     along = u @ axis
-    assert along.min() > 0.8
-    np.testing.assert_allclose(u - np.outer(along, axis), 0.0, atol=0.03)  # the drone drifts mm off-axis
+    assert along.min() > 0.4 * _fitted(env).gain_max  # 0.8 m/s at gain 2
+    off = u - np.outer(along, axis)
+    np.testing.assert_allclose(off[:, :2], 0.0, atol=0.03)  # never sideways: the drone drifts mm off-axis
+    # Up, a little: the firmware drone sinks a few cm while it tilts to speed up, and the bottom bar comes closer.
+    assert np.all(off[:, 2] > -0.03) and off[:, 2].max() < 0.15
     assert not bool(log[0].intervened[0])  # 1.2 m out: untouched
 
 
@@ -95,7 +113,7 @@ def test_turning_into_the_gate_just_passed_is_stopped_only_with_the_filter(use_f
 
 @pytest.mark.parametrize("use_filter", [True, False])
 def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_filter):
-    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.0, p[1]]])))
@@ -111,7 +129,7 @@ def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_fil
 @pytest.mark.parametrize("use_filter", [True, False])
 @pytest.mark.parametrize("direction", [(0.0, 1.5, 0.0), (-1.5, 0.0, 0.0), (0.0, 0.0, 1.5)])
 def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direction, use_filter):
-    env = envs.make("obstacles", num_agents=1, num_obstacles=0, layout_jitter=0.0)
+    env = _make("obstacles", num_agents=1, num_obstacles=0, layout_jitter=0.0)
     c = env.config
     s = env.reset(jax.random.PRNGKey(0))
     d = np.asarray(direction) / 1.5
@@ -130,7 +148,7 @@ def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direct
 
 
 def test_two_drones_flying_head_on_keep_apart_with_the_filter():
-    env = envs.make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
+    env = _make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
     s = env.reset(jax.random.PRNGKey(0))
     s = _run(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), True, seconds=2.4)
     assert not bool(jnp.any(s.tracker.collided))
@@ -138,7 +156,7 @@ def test_two_drones_flying_head_on_keep_apart_with_the_filter():
 
 
 def test_descending_into_the_floor_is_stopped():
-    env = envs.make("hover", layout_jitter=0.0)
+    env = _make("hover", layout_jitter=0.0)
     s = _run(env, env.reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
     assert not bool(s.tracker.collided[0])
     assert not bool(s.tracker.finished[0])  # still flying, not a goal reached on the way down
@@ -147,8 +165,9 @@ def test_descending_into_the_floor_is_stopped():
 
 def test_largest_default_gain_is_safe_at_full_speed():
     """The gain range is bounded by what the controller's lag allows: full speed, off-centre, gain_max."""
-    cfg = TrainConfig().safety_filter
-    env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    cfg = _fitted(env)
+    assert TrainConfig().safety_filter.fitted(characterise(env.config).lag_xy) == cfg
     s = env.reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))

@@ -28,8 +28,11 @@ def _restore(run_dir):
 
 
 def test_hover_learns_from_scratch(tmp_path):
+    # The firmware drone, nothing randomised, with gentler exploration: under PPO's initial white-noise commands
+    # (std 1 of 2 m/s, a new one every 40 ms) it hits the floor within a second in 98 % of episodes (the
+    # geometric drone in 2 %), and this budget is too small to learn past that (README, issue #12).
     cfg = TrainConfig(scenario="hover", method="mappo", num_envs=128, rollout_steps=32, updates_per_chunk=10,
-                      total_steps=128 * 32 * 30)
+                      total_steps=128 * 32 * 30, action_std_scale=0.3, env_overrides=(("randomize.enabled", False),))
     run = runner.train(cfg, tmp_path / "run", progress=False)
     rows = runner.read_metrics(run)
     # The deterministic policy on the same 64 unseen episodes, before (the run's initial parameters) and after.
@@ -278,7 +281,12 @@ def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monke
     if evaluate.PRETRAINED.exists():
         shipped = checkpoint.load_config(evaluate.PRETRAINED)
         stored = json.loads((evaluate.PRETRAINED / "config.json").read_text())["env"]
-        assert json.loads(json.dumps(dataclasses.asdict(shipped.env))) == stored
+        loaded = json.loads(json.dumps(dataclasses.asdict(shipped.env)))
+        # What it stores is kept; what it predates is the drone it was trained on (envs.config.LEGACY_DRONE).
+        assert all(loaded[k] == v if not isinstance(v, dict) else {f: loaded[k][f] for f in v} == v
+                   for k, v in stored.items())
+        if "controller" not in stored:
+            assert shipped.env.controller == "geometric" and not shipped.env.randomize.enabled
 
 
 def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):

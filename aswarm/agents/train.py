@@ -57,6 +57,17 @@ class TrainState:
     target: dict = struct.field(default_factory=dict)
 
 
+def fit_safety_filter(config: TrainConfig, env: envs.SwarmEnv) -> TrainConfig:
+    """``config`` with its filter's gains fitted to ``env``'s drone (``SafetyFilterConfig.fitted``), measured
+    once per drone and process; unchanged where the filter is already fitted."""
+    sf = config.safety_filter
+    if not (sf.fit_to_drone and config.uses_filter):
+        return config
+    from aswarm.analysis.step_response import characterise
+
+    return dataclasses.replace(config, safety_filter=sf.fitted(characterise(env.config).lag_xy))
+
+
 @dataclasses.dataclass(frozen=True)
 class Agent:
     """The networks and how to run them: shared by training, evaluation and export."""
@@ -71,7 +82,9 @@ class Agent:
 
     @classmethod
     def build(cls, config: TrainConfig, env: envs.SwarmEnv | None = None) -> Agent:
+        """The agent of ``config`` on ``env``; its ``config`` has the safety filter fitted to the drone."""
         env = env or make_env(config)
+        config = fit_safety_filter(config, env)
         n = env.num_agents
         return cls(
             config=config, env=env,

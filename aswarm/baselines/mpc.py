@@ -88,7 +88,10 @@ class MPCConfig:
     # drone picks K of them and flips each axis's sign at random. Drawing K·H·3 fresh normals with
     # jax.random cost 260 µs per drone-step on 2 cores, more than all the rollouts together.
     noise_bank: int = 4096
-    # Model, measured on the env (step response of `vel` to a velocity command in "hover"):
+    # Model, measured on the env (step response of `vel` to a velocity command in "hover"). These four are the
+    # geometric controller's; with fit_to_drone, make_mpc_policy measures them on the env's own drone instead
+    # (fit_to_drone below).
+    fit_to_drone: bool = True
     vel_gain: float = 4.0  # 1/s: vz reaches 63 % in 0.25 s, the onboard velocity loop's gain
     tilt_lag: float = 0.075  # s: the horizontal response lags vz's by ~65 ms (attitude loop); best open-loop fit
     max_accel_xy: float = 9.8 * math.tan(math.radians(30.0))  # m/s²: the controller's 30° tilt limit
@@ -240,12 +243,41 @@ def frame_distance(s: jax.Array, lat: jax.Array, vert: jax.Array, half_opening: 
     return jnp.sqrt(jnp.square(s) + jnp.square(jnp.minimum(in_plane_square, in_plane_post)))
 
 
+def fit_to_drone(config: MPCConfig, env: SwarmEnv) -> MPCConfig:
+    """``config`` with its model measured on ``env``'s drone (``analysis.step_response.characterise``): the
+    vertical gain from the 63 % rise of a z step, the acceleration limits from the steepest 0.1 s of 2 m/s
+    steps, and the tilt lag that makes the model's 0 -> 1 m/s x step closest to the drone's (least squares
+    over 1.5 s, on a 2 ms grid of lags)."""
+    if not config.fit_to_drone:
+        return config
+    from aswarm.analysis import step_response
+
+    c = step_response.characterise(env.config)
+    x = step_response.step_response(env.config, (1.0, 0.0, 0.0))
+    t, v = x["t"], x["vel"][:, 0]
+    k, dt = 1.0 / c.lag_z, float(t[1] - t[0])
+    keep = t <= 1.5
+
+    taus = np.arange(0.002, 0.3, 0.002)
+    vel, acc, out = np.zeros_like(taus), np.zeros_like(taus), []
+    for _ in range(len(t)):  # every lag at once; 100 Euler substeps per sample
+        for _ in range(100):
+            acc += (np.minimum(k * (1.0 - vel), c.accel_xy) - acc) / taus * (dt / 100)
+            vel += acc * (dt / 100)
+        out.append(vel.copy())
+    err = np.sum((np.asarray(out)[keep] - v[keep, None]) ** 2, axis=0)
+    return dataclasses.replace(config, fit_to_drone=False, vel_gain=k, tilt_lag=float(taus[int(np.argmin(err))]),
+                               max_accel_xy=c.accel_xy, accel_z=(-c.sink, c.climb))
+
+
 def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: bool = False) -> MPCPolicy:
-    """MPPI for ``env``'s drones; returns pure ``init`` and ``act`` (see :class:`MPCPolicy`).
+    """MPPI for ``env``'s drones; returns pure ``init`` and ``act`` (see :class:`MPCPolicy`). The model is
+    fitted to the env's drone first (:func:`fit_to_drone`) unless ``config.fit_to_drone`` is off.
 
     ``unroll`` unrolls the horizon's ``scan``: only for counting FLOPs, as XLA's cost analysis counts a
     loop body once whatever its trip count.
     """
+    config = fit_to_drone(config, env)
     cfg = env.config
     layout = env.obs_layout
     own_sl = layout.own_slices

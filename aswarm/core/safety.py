@@ -18,10 +18,14 @@ class SafetyFilterConfig:
     margin: float = 0.1
     # Class-K gain range (1/s) of the attention-CBF network's output. Above ~2/s a drone commanded at 2 m/s
     # straight at a cylinder still hit it: the filter assumes velocity follows the command at once, the
-    # onboard controller takes ~0.25 s (tests/test_safety_filter_env.py).
+    # geometric onboard controller takes ~0.25 s (TUNED_LAG; tests/test_safety_filter_env.py).
     gain_min: float = 0.3
     gain_max: float = 2.0
     fixed_gain: float = 1.5  # 1/s, the gain of method fixed_cbf
+    # Scale the three gains above by TUNED_LAG / (the drone's measured lag) where it is slower, when a policy is
+    # built for a drone (agents.train.Agent.build measures it: analysis.step_response.characterise). The
+    # fitted config has this False and the fitted gains, and that is what a run's filter and its export use.
+    fit_to_drone: bool = True
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
@@ -32,8 +36,12 @@ class SafetyFilterConfig:
     tol: float = 1e-6
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fit_to_drone, bool):
+            raise ValueError(f"invalid safety_filter.fit_to_drone={self.fit_to_drone!r}: allowed: true or false")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if f.name == "fit_to_drone":
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: a finite number")
         if not 0 < self.gain_min < self.gain_max:
@@ -46,6 +54,19 @@ class SafetyFilterConfig:
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
 
+
+    def fitted(self, lag: float) -> SafetyFilterConfig:
+        """The gains for a drone whose velocity reaches 63 % of a step in ``lag`` s (unchanged if not slower than
+        the drone they were tuned on, or if ``fit_to_drone`` is off)."""
+        if not self.fit_to_drone:
+            return self
+        scale = min(1.0, TUNED_LAG / lag)
+        return dataclasses.replace(self, gain_min=self.gain_min * scale, gain_max=self.gain_max * scale,
+                                   fixed_gain=self.fixed_gain * scale, fit_to_drone=False)
+
+
+# s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
+TUNED_LAG = 0.25
 
 # Flat TrainConfig fields of runs written before the nested config (config.json, sweep files, flags),
 # and the field of SafetyFilterConfig each became.
@@ -82,9 +103,11 @@ def manifest_fields(config: SafetyFilterConfig) -> dict:
 def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     """The config a manifest's ``safety_filter`` section holds. Every field has been written since format 1
     (bundles from before this config have them too), so a missing one is an error, not a default."""
+    safety = {"fit_to_drone": False, **safety}  # bundles from before the field hold fitted (hand-set) gains
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "
                          "aswarm export (re-export the checkpoint)")
     kinds = {f.name: f.type for f in dataclasses.fields(SafetyFilterConfig)}
-    return SafetyFilterConfig(**{k: int(safety[k]) if kinds[k] in (int, "int") else float(safety[k]) for k in kinds})
+    cast = {"int": int, "bool": bool}  # the annotations are strings (from __future__ import annotations)
+    return SafetyFilterConfig(**{k: cast.get(kinds[k], float)(safety[k]) for k in kinds})

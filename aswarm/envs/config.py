@@ -6,10 +6,19 @@ import dataclasses
 import math
 
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.firmware_pid import FirmwarePid
 from aswarm.envs.onboard_controller import ControllerGains
 from aswarm.envs.presets import SCENARIOS
+from aswarm.envs.randomization import OFF, Randomization
 
 REWARDS = ("shaped", "paper")
+# The onboard controller between the policy's velocity command and the motors. "pid": the Crazyflie
+# firmware's default controller_pid (firmware_pid.py), what a stock Crazyflie runs on velocity setpoints;
+# "geometric": the SO(3) controller every run before the firmware's was trained with (onboard_controller.py).
+CONTROLLERS = ("pid", "geometric")
+# The firmware runs controller_pid's attitude and rate loops at 500 Hz and its velocity loop at 100 Hz
+# (stabilizer_types.h: ATTITUDE_RATE, POSITION_RATE): the physics steps at the attitude rate.
+PID_RATES = {"sim_freq": 500, "ctrl_freq": 100}
 FORMATIONS = ("column", "grid")
 MAX_AGENTS = 64
 
@@ -55,9 +64,11 @@ class EnvConfig:
     # one drone at a time (released all at once, the followers caught up and the swarm jammed at gate 0).
     start_interval: float = 0.0
     layout_jitter: float = 1.0  # 0 gives the nominal layout every episode
-    # Rates (Hz). Physics >= 240 Hz; the controller and the policy divide it.
-    sim_freq: int = 250
-    ctrl_freq: int = 250
+    # Rates (Hz). Physics >= 240 Hz; the controller and the policy divide it. controller "pid" runs its
+    # attitude loop every physics step and its velocity loop every 1 / ctrl_freq s, at the firmware's rates.
+    controller: str = "pid"
+    sim_freq: int = 500
+    ctrl_freq: int = 100
     policy_freq: int = 25  # 10 Hz: the command held 0.1 s outran the filter (README)
     episode_seconds: float = 40.0
     max_speed: float = 2.0  # m/s, per-axis clip of the velocity command
@@ -77,7 +88,9 @@ class EnvConfig:
     paper_epsilon: float = 0.001  # r = 1 / (d + eps)
     safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
     cf: CrazyflieParams = CrazyflieParams()
-    gains: ControllerGains = ControllerGains()
+    gains: ControllerGains = ControllerGains()  # controller "geometric"
+    pid: FirmwarePid = FirmwarePid()  # controller "pid"
+    randomize: Randomization = Randomization()
 
     def __post_init__(self) -> None:
         validate(self)
@@ -103,6 +116,18 @@ class EnvConfig:
         return self.num_obstacles + self.num_moving
 
 
+# Fields of cf., gains. and pid. where 0 means "left out" rather than nonsense.
+MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.", "rate_kd"), ("pid.", "vel_xy_ki"),
+               ("pid.", "vel_z_ki"), ("pid.", "att_ki"), ("pid.", "yaw_ki"), ("pid.", "rate_ki"),
+               ("pid.", "yaw_rate_ki")}
+
+# The drone every run before the firmware-faithful one (issue #12) trained on, as EnvConfig fields: what a stored
+# run's env that lacks the newer fields meant (``run_config.read`` fills them from here), and what tests of the
+# geometric controller build (``registry.preset(name, **LEGACY_DRONE)``).
+LEGACY_DRONE = {"controller": "geometric", "sim_freq": 250, "ctrl_freq": 250,
+                "cf": dataclasses.replace(CrazyflieParams(), motor_tau=0.0), "pid": FirmwarePid(), "randomize": OFF}
+
+
 def _fail(name: str, value, allowed: str) -> None:
     raise ValueError(f"invalid {name}={value!r}: {allowed}")
 
@@ -123,10 +148,26 @@ def validate(c: EnvConfig) -> None:
     _check_finite("", c)
     _check_finite("cf.", c.cf)
     _check_finite("gains.", c.gains)
+    _check_finite("pid.", c.pid)
+    if c.controller not in CONTROLLERS:
+        _fail("controller", c.controller, f"allowed: {', '.join(CONTROLLERS)}")
+    if c.controller == "pid":
+        for name, rate in PID_RATES.items():
+            if getattr(c, name) != rate:
+                _fail(name, getattr(c, name), f"controller 'pid' runs at the firmware's rates: {name}={rate}")
+    if not c.pid.max_tilt_deg < 90:
+        _fail("pid.max_tilt_deg", c.pid.max_tilt_deg, "must be in (0, 90) degrees")
+    if not c.pid.motor_thrust_min < c.pid.motor_thrust_max:
+        _fail("pid.motor_thrust_min", c.pid.motor_thrust_min,
+              f"must be < pid.motor_thrust_max={c.pid.motor_thrust_max}")
     # Physical constants and gains: a zero or negative one has no meaning (MuJoCo itself would refuse a mass
     # of 0 with a multi-line error), and a drone that cannot lift its weight never takes off.
-    for prefix, obj in (("cf.", c.cf), ("gains.", c.gains)):
+    for prefix, obj in (("cf.", c.cf), ("gains.", c.gains), ("pid.", c.pid)):
         for f in dataclasses.fields(obj):
+            if (prefix, f.name) in MAY_BE_ZERO:
+                if any(x < 0 for x in (getattr(obj, f.name) if f.name == "drag" else (getattr(obj, f.name),))):
+                    _fail(prefix + f.name, getattr(obj, f.name), "must be >= 0")
+                continue
             v = getattr(obj, f.name)
             if any(isinstance(x, (int, float)) and x <= 0 for x in (v if isinstance(v, tuple) else (v,))):
                 _fail(prefix + f.name, v, "must be > 0")

@@ -32,6 +32,13 @@ class CrazyflieParams:
     gravity: float = 9.8  # m/s^2, as gym-pybullet-drones uses
     collision_radius: float = 0.06  # m, radius of the collision sphere
     body_half_height: float = 0.0125  # m, for drawing only
+    # First-order lag of each rotor's speed towards its command (s); 0: speeds change at once. 0.136 s is
+    # 1 / 7.356, the spin-up coefficient the crazyflow team identified for the Crazyflie 2.x (package
+    # `drone-models` 0.1.0, params.toml [cf2x_L250] rotor_dyn_coef[0], d rpm/dt = k (cmd - rpm)).
+    motor_tau: float = 0.136
+    # Linear rotor drag (gym-pybullet-drones' DRAG): F = -drag * v_body * sum(2 pi rpm / 60), per body axis
+    # (N s / m per rad/s). 0 leaves it out; gym-pybullet-drones' values are (9.1785e-7, 9.1785e-7, 10.311e-7).
+    drag: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def weight(self) -> float:

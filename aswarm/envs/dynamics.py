@@ -70,7 +70,22 @@ def motor_wrench(rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> jax.Array
     cf = drone_params(cf)
     rpm = jnp.clip(rpm, 0.0, cf.max_rpm)
     thrusts = cf.kf * rpm**2
-    return thrusts @ jnp.asarray(cf.mixer, dtype=rpm.dtype).T
+    wrench = thrusts @ jnp.asarray(cf.mixer, dtype=rpm.dtype).T
+    return wrench.at[:, 3].multiply(cf.km_scale)  # exact where km_scale is 1 (every undrawn drone)
+
+
+def rotor_lag(rpm: jax.Array, target: jax.Array, tau: jax.Array, dt: float) -> jax.Array:
+    """Rotor speeds after ``dt`` s of the first-order lag ``d rpm / dt = (target - rpm) / tau`` with ``target``
+    held: the exact solution, so the step size changes nothing but where the response is sampled."""
+    return target + (rpm - target) * jnp.exp(-dt / tau)
+
+
+def rotor_drag(quat: jax.Array, vel: jax.Array, rpm: jax.Array, cf: DroneParams) -> jax.Array:
+    """[n, 3] world-frame linear rotor drag, ``-drag * v_body * sum(2 pi rpm / 60)`` (gym-pybullet-drones' DRAG)."""
+    rot = quat_to_rotmat(quat)
+    v_body = jnp.einsum("nji,nj->ni", rot, vel)
+    omega = jnp.sum(rpm, -1, keepdims=True) * (2 * jnp.pi / 60)
+    return jnp.einsum("nij,nj->ni", rot, -cf.drag * v_body * omega)
 
 
 def apply_wrench(data: mjx.Data, quat: jax.Array, wrench: jax.Array) -> mjx.Data:
@@ -95,13 +110,18 @@ def with_drone(model: mjx.Model, cf: DroneParams) -> mjx.Model:
     return model.replace(body_mass=body_mass, body_inertia=body_inertia, body_subtreemass=subtree)
 
 
-def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> mjx.Data:
+def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: DroneParams | CrazyflieParams,
+                 drag: bool = False) -> mjx.Data:
     """One physics step with motor speeds ``rpm`` [n, 4] held constant; ``cf``'s mass and inertia replace
-    the model's (:func:`with_drone`)."""
+    the model's (:func:`with_drone`); ``drag``: add :func:`rotor_drag`."""
     cf = drone_params(cf)
     n = rpm.shape[0]
     quat = data.qpos.reshape(n, 7)[:, 3:]
-    return mjx.step(with_drone(model, cf), apply_wrench(data, quat, motor_wrench(rpm, cf)))
+    data = apply_wrench(data, quat, motor_wrench(rpm, cf))
+    if drag:
+        force = rotor_drag(quat, data.qvel.reshape(n, 6)[:, :3], rpm, cf)
+        data = data.replace(xfrc_applied=data.xfrc_applied.at[1:, :3].add(force))
+    return mjx.step(with_drone(model, cf), data)
 
 
 @functools.lru_cache(maxsize=32)

@@ -24,6 +24,7 @@ import numpy as np
 from flax import struct
 
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.firmware_pid import FirmwarePid
 
 if TYPE_CHECKING:  # imported for hints only: the config and the controller import this module
     from aswarm.envs.config import EnvConfig
@@ -49,6 +50,9 @@ class DroneParams:
     kf: jax.Array  # [] N / RPM^2
     max_rpm: jax.Array  # [] derived: sqrt(thrust_to_weight * weight / (4 kf))
     max_motor_thrust: jax.Array  # [] N, derived: kf * max_rpm^2
+    motor_tau: jax.Array  # [] s, rotor time constant (used where the config's cf.motor_tau > 0)
+    km_scale: jax.Array  # [] the yaw-torque constant over the config's (domain randomisation)
+    drag: jax.Array  # [3] linear rotor drag (used where the config's cf.drag is not zero)
     # Not data (params that differ in them do not fit the env): gravity is the MJX model's opt.gravity, and the
     # mixer (arm length and km / kf; varying kf varies km with it) multiplies as a [4, 4] constant: as data
     # it would be one matrix per world, a batched product that XLA sums in another order (other bits).
@@ -59,7 +63,8 @@ class DroneParams:
     @classmethod
     def from_crazyflie(cls, cf: CrazyflieParams) -> DroneParams:
         return cls(mass=_f32(cf.mass), inertia=_f32(cf.inertia), kf=_f32(cf.kf), max_rpm=_f32(cf.max_rpm),
-                   max_motor_thrust=_f32(cf.max_motor_thrust), gravity=float(cf.gravity),
+                   max_motor_thrust=_f32(cf.max_motor_thrust), motor_tau=_f32(cf.motor_tau), km_scale=_f32(1.0),
+                   drag=_f32(cf.drag), gravity=float(cf.gravity),
                    mixer=_matrix(cf.mixer()), inv_mixer=_matrix(np.linalg.inv(cf.mixer())))
 
 
@@ -91,7 +96,8 @@ class EnvParams:
     """Everything ``SwarmEnv.reset``/``step`` read that changes no shape; field names follow ``EnvConfig``."""
 
     cf: DroneParams
-    gains: GainParams
+    gains: GainParams  # the geometric controller's
+    pid: FirmwarePid  # the firmware controller's, as arrays
     max_speed: jax.Array  # m/s, per-axis clip of the velocity command
     safety_margin: jax.Array  # m; the cost grows as clearance falls below it
     progress_weight: jax.Array
@@ -104,6 +110,9 @@ class EnvParams:
     paper_epsilon: jax.Array
     moving_amplitude: jax.Array  # m, read by reset (the layout of a new episode)
     moving_omega: jax.Array  # rad/s, derived: 2 pi / moving_period
+    latency_ticks: jax.Array  # onboard-controller ticks the velocity command arrives late (whole numbers)
+    mocap_noise: jax.Array  # m, standard deviation of the noise on every position the policy sees
+    mocap_delay: jax.Array  # policy steps the poses the policy sees are old (whole numbers)
 
     @classmethod
     def from_config(cls, cfg: EnvConfig) -> EnvParams:
@@ -116,6 +125,7 @@ class EnvParams:
             time_penalty_per_step=_f32(cfg.time_penalty * cfg.dt), lateral_weight=_f32(cfg.lateral_weight),
             wrong_side_weight=_f32(cfg.wrong_side_weight), paper_epsilon=_f32(cfg.paper_epsilon),
             moving_amplitude=_f32(cfg.moving_amplitude), moving_omega=_f32(2 * np.pi / cfg.moving_period),
+            pid=jax.tree.map(_f32, cfg.pid), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0), mocap_delay=_f32(0.0),
         )
 
 

@@ -25,8 +25,9 @@ from aswarm.core import geometry as geo
 from aswarm.core.layout import ObsLayout
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
+from aswarm.envs import firmware_pid, randomization
 from aswarm.envs.config import EnvConfig
-from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, set_drone_state
+from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, rotor_lag, set_drone_state
 from aswarm.envs.mjx_import import mjx
 from aswarm.envs.onboard_controller import velocity_controller
 from aswarm.envs.params import EnvParams
@@ -52,6 +53,19 @@ class Tracker:
 
 
 @struct.dataclass
+class Onboard:
+    """What sits between the policy and the rigid bodies, per drone: the onboard controller's memory, the rotor
+    speeds, the commands still on their way and the poses motion capture still has to hand over."""
+
+    pid: firmware_pid.PidState | None  # controller "pid"; None for "geometric" (it has no memory)
+    rpm: jax.Array  # [n, 4] rotor speeds (RPM), lagging their commands where cf.motor_tau > 0
+    commands: jax.Array  # [2, n, 3] the velocity commands of the last two policy steps, the newest first
+    obs_history: jax.Array  # [max_delay, n, obs_dim] the policy's last observations, the newest first
+    key: jax.Array  # draws the motion-capture noise of each step
+    params: EnvParams | None  # this episode's draw (domain randomisation); None where nothing is drawn
+
+
+@struct.dataclass
 class State:
     """Brax / MuJoCo Playground style state of one world."""
 
@@ -71,6 +85,7 @@ class State:
     # constant arithmetic (reciprocals, products of gains), so they give other last bits than the same values
     # as data; None keeps the numbers of every run and checkpoint made before this split.
     params: EnvParams | None
+    onboard: Onboard
 
 
 class SwarmEnv:
@@ -87,6 +102,12 @@ class SwarmEnv:
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
         self.default_params = EnvParams.from_config(config)
+        self.randomize = config.randomize.enabled
+        self.lag = config.cf.motor_tau > 0
+        self.drag = any(c > 0 for c in config.cf.drag)
+        self.ticks = config.substeps // config.ctrl_every  # onboard-controller ticks per policy step
+        # The rotor speed the firmware's thrust map commands, per sqrt(thrust): the nominal drone's kf.
+        self._kf_nominal = float(config.cf.kf)
 
     # Sizes, as MuJoCo Playground names them.
     @property
@@ -117,7 +138,10 @@ class SwarmEnv:
         n = cfg.num_agents
         if params is not None:
             params = check_params(params, self.default_params)
-        p = self.params(params)
+        # fold_in leaves `key` itself to the layout, as before anything else was drawn from it.
+        drawn = (randomization.sample(jax.random.fold_in(key, 1), self.params(params), cfg.randomize, self.ticks)
+                 if self.randomize else None)
+        p = drawn if drawn is not None else self.params(params)
         layout = sample_layout(key, cfg, self.geometry, p.moving_amplitude, p.moving_omega)
         drones = DroneState(
             pos=layout.start_pos,
@@ -133,10 +157,19 @@ class SwarmEnv:
             separation_sum=zeros, speed_sum=zeros, finish_time=zeros, episode_return=zeros,
             steps=jnp.zeros((), jnp.int32),
         )
+        hover_rpm = jnp.sqrt(p.cf.mass * cfg.cf.gravity / (4 * p.cf.kf))
+        pid = None
+        if cfg.controller == "pid":
+            hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
+            pid = firmware_pid.initial_state(drones.quat, drones.ang_vel, hover, p.pid)
         obs = self._observe(drones, layout, tracker, jnp.zeros(()))
-        state = State(data=data, obs=obs, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
+        onboard = Onboard(pid=pid, rpm=jnp.broadcast_to(hover_rpm, (n, 4)), commands=jnp.zeros((2, n, 3)),
+                          obs_history=jnp.broadcast_to(obs, (cfg.randomize.max_delay,) + obs.shape),
+                          key=jax.random.fold_in(key, 2), params=drawn)
+        seen = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)[0]
+        state = State(data=data, obs=seen, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
                       done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
-                      metrics={}, info={}, params=params)
+                      metrics={}, info={}, params=params, onboard=onboard)
         return state.replace(metrics=self._metrics(tracker))
 
     # ------------------------------------------------------------------- step
@@ -146,7 +179,7 @@ class SwarmEnv:
         n = cfg.num_agents
         self.check_action(action)
         # Inside jit a NaN cannot raise; a NaN command becomes a hover command.
-        p = self.params(state.params)
+        p = self.episode_params(state)
         cmd = jnp.clip(jnp.nan_to_num(action, nan=0.0), -p.max_speed, p.max_speed)
         tr0 = state.tracker
         active0 = self.flying(state)
@@ -154,23 +187,40 @@ class SwarmEnv:
         layout = state.layout
         frames = geo.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
         p0 = drone_state(state.data, n).pos
+        ob = state.onboard
+        dt_ctrl, dt_sim = 1.0 / cfg.ctrl_freq, 1.0 / cfg.sim_freq
 
-        def control(carry, _):
-            data, tr, hazard = carry
-            rpm = velocity_controller(drone_state(data, n), cmd, p.gains, p.cf)
+        def physics(d, rpm_cmd, rpm):
+            rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim) if self.lag else rpm_cmd
+            return physics_step(self.mjx_model, d, rpm, p.cf, self.drag), rpm
+
+        def control(carry, tick):
+            data, pid, rpm, tr, hazard = carry
+            now = self._command(cmd, ob.commands, tick, p) if self.latency else cmd
+            s = drone_state(data, n)
+            if pid is None:
+                rpm_cmd = velocity_controller(s, now, p.gains, p.cf)
+            else:
+                pid = firmware_pid.velocity_loop(pid, s.quat, s.vel, now, p.pid, dt_ctrl)
 
             def inner(c, _):
-                d, t, h = c
-                prev = drone_state(d, n).pos
-                d = physics_step(self.mjx_model, d, rpm, p.cf)
-                t, hz = self._check(prev, drone_state(d, n).pos, d.time, layout, frames, t)
-                return (d, t, jnp.minimum(h, hz)), None
+                d, pid, rpm, t, h = c
+                prev = drone_state(d, n)
+                if pid is None:
+                    target = rpm_cmd
+                else:
+                    pid, motors = firmware_pid.attitude_loop(pid, prev.quat, prev.ang_vel, p.pid, dt_sim)
+                    target = firmware_pid.motor_rpm(motors, p.pid, self._kf_nominal)
+                d, rpm = physics(d, target, rpm)
+                t, hz = self._check(prev.pos, drone_state(d, n).pos, d.time, layout, frames, t)
+                return (d, pid, rpm, t, jnp.minimum(h, hz)), None
 
-            return jax.lax.scan(inner, (data, tr, hazard), None, length=cfg.ctrl_every)[0], None
+            return jax.lax.scan(inner, (data, pid, rpm, tr, hazard), None, length=cfg.ctrl_every)[0], None
 
-        (data, tr, hazard), _ = jax.lax.scan(
-            control, (state.data, tr0, jnp.full(n, geo.FAR)), None, length=cfg.substeps // cfg.ctrl_every
+        (data, pid, rpm, tr, hazard), _ = jax.lax.scan(
+            control, (state.data, ob.pid, ob.rpm, tr0, jnp.full(n, geo.FAR)), jnp.arange(self.ticks)
         )
+        ob = ob.replace(pid=pid, rpm=rpm, commands=jnp.stack([cmd, ob.commands[0]]))
 
         drones = drone_state(data, n)
         t = data.time
@@ -205,16 +255,44 @@ class SwarmEnv:
         terminated = jnp.all(tr.finished) | jnp.any(tr.collided)
         truncated = (tr.steps >= cfg.max_steps) & ~terminated
         obs = self._observe(drones, layout, tr, t)
+        seen, ob = self._mocap(ob, obs, drones, layout, tr, t, p)
         return state.replace(
-            data=data, obs=obs, critic_obs=obs.reshape(-1), reward=reward, cost=cost,
+            data=data, obs=seen, critic_obs=obs.reshape(-1), reward=reward, cost=cost,
             done=(terminated | truncated).astype(jnp.float32), truncated=truncated.astype(jnp.float32),
-            tracker=tr, metrics=self._metrics(tr),
+            tracker=tr, metrics=self._metrics(tr), onboard=ob,
         )
 
     # --------------------------------------------------------------- helpers
     def params(self, params: EnvParams | None) -> EnvParams:
         """The parameters a state's ``params`` stand for: ``default_params`` where None."""
         return self.default_params if params is None else params
+
+    def episode_params(self, state: State) -> EnvParams:
+        """What this episode flies with: its domain-randomisation draw, or the state's ``params``."""
+        return state.onboard.params if state.onboard.params is not None else self.params(state.params)
+
+    @property
+    def latency(self) -> bool:
+        return self.config.randomize.max_latency > 0
+
+    def _command(self, cmd: jax.Array, earlier: jax.Array, tick: jax.Array, p: EnvParams) -> jax.Array:
+        """The velocity command the onboard controller holds at ``tick`` of this policy step when commands
+        arrive ``p.latency_ticks`` ticks late: this step's, or one of the last two steps'."""
+        age = tick - p.latency_ticks  # < 0: still the command of an earlier step
+        return jnp.where(age >= 0, cmd, jnp.where(age >= -self.ticks, earlier[0], earlier[1]))
+
+    def _mocap(self, ob: Onboard, obs: jax.Array, drones: DroneState, layout: Layout, tr: Tracker, t,
+               p: EnvParams) -> tuple[jax.Array, Onboard]:
+        """What the policy sees: the observation built from noisy positions (``p.mocap_noise``), handed over
+        ``p.mocap_delay`` policy steps late. Without randomisation, ``obs`` itself."""
+        if not self.randomize:
+            return obs, ob
+        key, k = jax.random.split(ob.key)
+        noise = p.mocap_noise * jax.random.normal(k, drones.pos.shape)
+        fresh = self._observe(drones.replace(pos=drones.pos + noise), layout, tr, t)
+        seen = jnp.concatenate([fresh[None], ob.obs_history])  # [k]: the observation of k steps ago
+        delayed = seen[jnp.minimum(p.mocap_delay, ob.obs_history.shape[0]).astype(jnp.int32)]
+        return delayed, ob.replace(obs_history=seen[:ob.obs_history.shape[0]], key=key)
 
     def flying(self, state: State) -> jax.Array:
         """[..., n] bool: drones not finished and released (staggered track starts); the others hover and

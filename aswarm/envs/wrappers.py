@@ -28,7 +28,8 @@ class AutoResetWrapper(Wrapper):
     The returned state keeps the finished step's reward, cost, done, truncated
     and metrics; its obs belong to the new episode. ``info["final_obs"]`` and
     ``info["final_critic_obs"]`` hold the last observation of the finished
-    episode, so a learner can bootstrap on truncation. A new episode keeps the state's ``params``.
+    episode, so a learner can bootstrap on truncation. A new episode keeps the state's ``params`` (and draws
+    its own domain randomisation around them).
     """
 
     def reset(self, key: jax.Array, params=None) -> State:
@@ -47,7 +48,7 @@ class AutoResetWrapper(Wrapper):
         out = nxt.replace(
             data=pick(fresh.data, nxt.data), obs=pick(fresh.obs, nxt.obs),
             critic_obs=pick(fresh.critic_obs, nxt.critic_obs), layout=pick(fresh.layout, nxt.layout),
-            tracker=pick(fresh.tracker, nxt.tracker),
+            tracker=pick(fresh.tracker, nxt.tracker), onboard=pick(fresh.onboard, nxt.onboard),
         )
         info = dict(nxt.info, reset_key=key, final_obs=nxt.obs, final_critic_obs=nxt.critic_obs)
         return out.replace(info=info)

@@ -48,7 +48,7 @@ def sha256_file(path: Path) -> str:
 
 def make_manifest(*, scenario: str, kind: str, env: Mapping, env_overrides: Mapping, course: Mapping,
                   layout: ObsLayout, networks: Mapping, safety_filter: Mapping, train_config: Mapping,
-                  train_config_sha256: str, source: str, trained_updates: int) -> dict:
+                  train_config_sha256: str, source: str, trained_updates: int, drone: Mapping | None = None) -> dict:
     """The manifest of a bundle (without ``arrays`` and ``npz_sha256``, which :func:`write_bundle` adds).
 
     ``env`` must hold num_agents, num_cylinders, num_gates, max_speed (m/s), policy_freq (Hz),
@@ -74,6 +74,7 @@ def make_manifest(*, scenario: str, kind: str, env: Mapping, env_overrides: Mapp
                        "max_abs_value": OBS_NORM_CLIP},
         "networks": dict(networks),
         "safety_filter": dict(safety_filter),
+        "drone": dict(drone or {}),
         "source": {"checkpoint": source, "trained_updates": int(trained_updates),
                    "train_config_sha256": train_config_sha256, "train_config": dict(train_config)},
     }

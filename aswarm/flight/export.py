@@ -87,17 +87,22 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     # The SafetyFilterConfig field by field (core.safety.from_manifest reads it back), then the env's part.
     safety = {"method": config.method, "enabled": config.uses_filter,
               "gain_source": "attention" if config.uses_attention else "fixed",
-              **manifest_fields(config.safety_filter), "penalty_max": config.penalty_max,
+              **manifest_fields(agent.config.safety_filter), "penalty_max": config.penalty_max,
               "drone_radius": ec.cf.collision_radius, "gate_half_opening": ec.gate_half_opening,
               "gate_bar": ec.gate_bar,
               "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | walls 5 (x low, x high, "
                       "y low, y high, ceiling) | gate frame 5 | previous gate 5 (gate rows where a gate is observed)"}
+    # The onboard controller the policy was trained on, and the firmware parameters that select it on the drone
+    # (stabilizer.controller: 1 is controller_pid); the geometric controller has no firmware counterpart.
+    drone = {"controller": ec.controller, "motor_tau": ec.cf.motor_tau, "mass": ec.cf.mass,
+             "firmware_params": {"stabilizer.controller": 1} if ec.controller == "pid" else {},
+             "pid": dataclasses.asdict(ec.pid) if ec.controller == "pid" else None}
     manifest = fb.make_manifest(
         scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
         env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},
         course=course, layout=ObsLayout(env.obs_layout.num_cylinders, env.obs_layout.num_neighbours),
         networks=networks, safety_filter=safety, train_config=json.loads(config_text)["train"],
-        train_config_sha256=hashlib.sha256(config_text.encode()).hexdigest(), source=source,
+        train_config_sha256=hashlib.sha256(config_text.encode()).hexdigest(), source=source, drone=drone,
         trained_updates=trained_updates)
     # The full env the policy was trained on, as the run stored it: `aswarm sitl` flies on exactly this.
     manifest["source"]["env_config"] = dataclasses.asdict(ec)

@@ -122,6 +122,8 @@ class Link(Protocol):
 
     def takeoff(self, height: float, duration: float) -> None: ...
 
+    def set_params(self, params: dict) -> None: ...
+
     def send_poses(self, positions: np.ndarray, quats: np.ndarray, valid: np.ndarray) -> None: ...
 
     def send_velocities(self, t: float, velocities: np.ndarray, active: np.ndarray) -> None: ...
@@ -142,6 +144,10 @@ class DryRunLink:
 
     def takeoff(self, height: float, duration: float) -> None:
         self.out(f"takeoff all height={height:.2f} m duration={duration:.1f} s")
+
+    def set_params(self, params: dict) -> None:
+        for name, value in params.items():
+            self.out(f"param all {name}={value}")
 
     def send_poses(self, positions, quats, valid) -> None:
         pass  # the drones' own estimators are not simulated in a dry run
@@ -180,6 +186,11 @@ class CflibLink:
         self.swarm.parallel_safe(lambda scf, uri: self.cfs.__setitem__(uri, scf.cf),
                                  args_dict={u: [u] for u in self.uris})
         self.swarm.reset_estimators()
+
+    def set_params(self, params: dict) -> None:
+        for uri in self.uris:
+            for name, value in params.items():
+                self.cfs[uri].param.set_value(name, value)
 
     def takeoff(self, height: float, duration: float) -> None:
         for uri in self.uris:
@@ -265,7 +276,14 @@ def fly(bundle: Bundle, link: Link, mocap: MocapSource, *, plan: FlightPlan = Fl
     ctl.reset(**course)
     period = 1.0 / bundle.rate_hz
     steps, landed, events = 0, set(), []
+    drone = bundle.manifest.get("drone", {})
+    if drone.get("controller") == "geometric":
+        log("warning: the policy was trained on the geometric controller, which the firmware does not have; "
+            "the drones fly controller_pid (retrain on the default drone)")
     try:
+        # The onboard controller the policy was trained with (manifest "drone": controller_pid is
+        # stabilizer.controller 1).
+        link.set_params(dict(drone.get("firmware_params", {})))
         link.takeoff(plan.takeoff_height, plan.takeoff_seconds)
         t0 = clock() if clock else getattr(mocap, "start", 0.0)
         wall0 = time.monotonic()

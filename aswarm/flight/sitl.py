@@ -2,8 +2,11 @@
 
 The runtime (:class:`aswarm.flight.FlightController`, the very code that flies) sees what a mocap
 system would give it: drone positions and attitudes with timestamps, optionally with Gaussian
-position noise and a latency of whole control steps, the cylinders' poses and the course (gates or
-goals). It estimates velocities itself, tracks its own gate progress, runs the policy and the
+position noise and latency, the cylinders' poses and the course (gates or goals). Latency comes in
+milliseconds: whole control steps of it make the runtime see old poses, the rest delays its command on the
+drone by whole onboard-controller ticks. The simulated drone can be heavier or lighter and its rotors push
+more or less than the runtime (and the onboard controller's thrust map) expect; nothing else of the
+training's randomisation is drawn. It estimates velocities itself, tracks its own gate progress, runs the policy and the
 filter, and its setpoints drive ``env.step``. Episodes run vmapped and jitted over worlds, as
 ``aswarm eval`` runs them, from the same keys (so the same layouts for the same seed), and the
 report has the same metrics.
@@ -12,6 +15,7 @@ report has the same metrics.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import time
 from pathlib import Path
@@ -25,6 +29,7 @@ from aswarm import config_args, envs
 from aswarm.analysis import evaluate
 from aswarm.analysis.protocol import EVAL_SEED
 from aswarm.envs.dynamics import drone_state
+from aswarm.envs.randomization import OFF
 from aswarm.envs.scenarios import cylinders_at
 from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle
 from aswarm.flight.estimator import EstimatorConfig
@@ -50,7 +55,8 @@ class Simulator(NamedTuple):
 
 @functools.lru_cache(maxsize=4)
 def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
-    """Jitted, vmapped reset and step of ``episodes`` worlds (cached: tests and repeated runs compile once)."""
+    """Jitted, vmapped reset and step of ``episodes`` worlds (cached: tests and repeated runs compile once);
+    ``reset(key, params=None)`` takes the drone's :class:`~aswarm.envs.params.EnvParams` (the same for every world)."""
     env = envs.SwarmEnv(config)
     n = env.num_agents
 
@@ -60,8 +66,8 @@ def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
         return Sensed(d.pos, d.quat, s.data.time, cyl_pos, cyl_vel, s.done, s.metrics)
 
     @jax.jit
-    def reset(key):
-        s = jax.vmap(env.reset)(jax.random.split(key, episodes))
+    def reset(key, params=None):
+        s = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, episodes), params)
         return s, sense(s)
 
     @jax.jit
@@ -107,25 +113,48 @@ def course(bundle: Bundle, layout) -> dict:
     return {"goals": layout.waypoints[:, :, 0]}
 
 
+def split_latency(latency_ms: float, cfg: envs.EnvConfig) -> tuple[int, int]:
+    """``latency_ms`` as (whole control steps of pose delay, onboard-controller ticks of command delay); a
+    ``ValueError`` unless it is a whole number of ticks."""
+    tick = 1000.0 / cfg.ctrl_freq
+    ticks = latency_ms / tick
+    if not (np.isfinite(latency_ms) and latency_ms >= 0) or abs(ticks - round(ticks)) > 1e-6:
+        raise ValueError(f"invalid latency={latency_ms!r} ms: allowed: a multiple >= 0 of the onboard controller's "
+                         f"tick, {tick:g} ms")
+    per_step = cfg.ctrl_freq // cfg.policy_freq
+    return int(round(ticks)) // per_step, int(round(ticks)) % per_step
+
+
 def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = EVAL_SEED,
-             noise: float = 0.0, latency: int = 0, env_overrides: list[str] | dict | None = None,
-             estimation: EstimatorConfig = EstimatorConfig(), progress: bool = False) -> dict:
+             noise: float = 0.0, latency_ms: float = 0.0, mass_scale: float = 1.0, thrust_scale: float = 1.0,
+             env_overrides: list[str] | dict | None = None, estimation: EstimatorConfig = EstimatorConfig(),
+             progress: bool = False) -> dict:
     """Fly ``episodes`` episodes; returns ``aswarm eval``'s metrics plus the runtime's own statistics.
 
     noise: standard deviation (m) of the Gaussian noise added to every position the runtime sees;
-    latency: the runtime sees the poses (and obstacles) of ``latency`` control steps ago.
+    latency_ms: what the runtime sees is this old, counting its command's way to the motors (:func:`split_latency`);
+    mass_scale, thrust_scale: the simulated drone's mass and thrust constant over the nominal ones.
     """
     if episodes <= 0:
         raise ValueError(f"invalid episodes={episodes}: must be > 0")
     if not (np.isfinite(noise) and noise >= 0):
         raise ValueError(f"invalid noise={noise!r}: must be a finite number of metres >= 0")
-    if not isinstance(latency, int) or latency < 0:
-        raise ValueError(f"invalid latency={latency!r}: must be an integer number of control steps >= 0")
+    for name, v in (("mass_scale", mass_scale), ("thrust_scale", thrust_scale)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"invalid {name}={v!r}: allowed: a factor > 0 of the nominal value")
     b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
     env = make_env(b, scenario, env_overrides)
+    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=OFF))  # the plant: one exact drone
     cfg = env.config
+    latency, ticks = split_latency(latency_ms, cfg)
+    nominal = env.default_params
+    params = nominal.replace(
+        cf=nominal.cf.replace(mass=nominal.cf.mass * mass_scale, inertia=nominal.cf.inertia * mass_scale,
+                              kf=nominal.cf.kf * thrust_scale,
+                              max_motor_thrust=nominal.cf.max_motor_thrust * thrust_scale),
+        latency_ticks=jnp.float32(ticks))
     sim = simulator(cfg, episodes)
-    state, sensed = sim.reset(jax.random.PRNGKey(seed))
+    state, sensed = sim.reset(jax.random.PRNGKey(seed), params)
     layout = jax.device_get(state.layout)
     # A pose is fresh for the controller if it is at most `latency` steps old: the stale limit
     # grows with the configured latency, or every drone would hover.
@@ -185,7 +214,8 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
               else sorted(f"{k}={v}" for k, v in env_overrides.items()),
               "episodes_ended": int(ended.sum())}
     result.update(evaluate.summarize(rec, interventions / max(flying, 1.0)))
-    result.update(noise=noise, latency=latency, control_steps=steps,
+    result.update(noise=noise, latency_ms=latency_ms, mass_scale=mass_scale, thrust_scale=thrust_scale,
+                  control_steps=steps,
                   runtime_ms_per_step=1e3 * runtime / max(steps, 1), events=dict(sorted(events.items())))
     return result
 
@@ -193,7 +223,8 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
 def format_table(r: dict) -> str:
     lines = [evaluate.format_table(r).replace(" episodes (seed", " SITL episodes (seed", 1)]
     lines.append(f"  {'position noise':24s} {r['noise']:8.3f} m")
-    lines.append(f"  {'latency':24s} {r['latency']:8d} steps")
+    lines.append(f"  {'latency':24s} {r['latency_ms']:8.0f} ms")
+    lines.append(f"  {'mass, thrust constant':24s} {r['mass_scale']:8.2f} x, {r['thrust_scale']:.2f} x nominal")
     lines.append(f"  {'runtime per step':24s} {r['runtime_ms_per_step']:8.3f} ms  (all {r['episodes']} worlds)")
     shown = ", ".join(f"{k} {v}" for k, v in r["events"].items()) or "none"
     lines.append(f"  {'runtime events':24s} {shown}")

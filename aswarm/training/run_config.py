@@ -16,9 +16,29 @@ from pathlib import Path
 from aswarm import config_args
 from aswarm.agents.config import TrainConfig
 from aswarm.core import safety
-from aswarm.envs.config import EnvConfig
+from aswarm.envs.config import LEGACY_DRONE, EnvConfig
 
 CONVERTER = "aswarm convert-run"
+
+
+def _legacy_drone() -> dict:
+    """:data:`~aswarm.envs.config.LEGACY_DRONE` as config.json writes it (dataclasses as tables)."""
+    return {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in LEGACY_DRONE.items()}
+
+
+def with_legacy_drone(env: dict) -> dict:
+    """A stored ``env`` section with the fields issue #12 added filled in as the drone was before them (the
+    geometric controller at 250 Hz, no rotor lag, no drag, nothing randomised): a run that predates them was
+    trained on that drone. Fields it has are kept; a section that has the controller field is returned as is."""
+    if not isinstance(env, dict) or "controller" in env:
+        return env
+    out = dict(env)
+    for k, v in _legacy_drone().items():
+        if k not in out:
+            out[k] = v
+        elif isinstance(v, dict) and isinstance(out[k], dict):
+            out[k] = {**v, **out[k]}
+    return out
 
 
 def payload(config: TrainConfig) -> dict:
@@ -64,6 +84,14 @@ def _train_fields(path: Path, train: dict) -> dict:
         train = safety.nest_legacy(train)  # runs from before TrainConfig.safety_filter: flat gain_min, ...
     except ValueError as e:
         raise CheckpointError(f"{path} is not a valid aswarm run config: {e}") from e
+    # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted.
+    sf = train.get("safety_filter")
+    if sf is None:
+        train["safety_filter"] = {"fit_to_drone": False}
+    elif isinstance(sf, dict) and "fit_to_drone" not in sf:
+        train["safety_filter"] = {**sf, "fit_to_drone": False}
+    elif isinstance(sf, safety.SafetyFilterConfig):  # nest_legacy's, from flat fields: an old run
+        train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False)
     types = config_args.field_types(TrainConfig)
     unknown = sorted(set(train) - set(types))
     if unknown:
@@ -77,7 +105,7 @@ def read(run_dir: Path) -> TrainConfig:
 
     path, raw = _read_json(run_dir)
     try:
-        env = config_args.from_dict(EnvConfig, raw["env"], "env", require_all=True)
+        env = config_args.from_dict(EnvConfig, with_legacy_drone(raw["env"]), "env", require_all=True)
     except (KeyError, TypeError, ValueError) as e:
         why = "no 'env' section" if isinstance(e, KeyError) else str(e)
         raise CheckpointError(f"{path} holds no usable env ({why}): convert it with `{CONVERTER} {run_dir}`") from e
@@ -112,7 +140,7 @@ def convert(run_dir: Path) -> tuple[Path, list[str]]:
     except ValueError as e:
         raise CheckpointError(f"{path}: cannot rebuild its env from scenario {scenario!r}: {e}") from e
     stored = raw.get("env")
-    stored = stored if isinstance(stored, dict) else {}
+    stored = with_legacy_drone(stored) if isinstance(stored, dict) else _legacy_drone()
     filled = []
 
     def merge(base: dict, stored: dict, prefix: str) -> dict:
