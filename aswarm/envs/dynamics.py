@@ -128,8 +128,11 @@ def physics_step(model: mjx.Model, data: mjx.Data, rpm: jax.Array, cf: DronePara
 def physics_model(num_agents: int, sim_freq: int, cf: CrazyflieParams = CrazyflieParams()):
     """(mujoco.MjModel, mjx.Model) of ``num_agents`` drones stepped at ``sim_freq`` Hz."""
     m = scene.build_model(num_agents, sim_freq, cf, physics_only=True)
-    # This process's first device: jax.devices()[0], MJX's default, belongs to another host in multi-host runs.
-    return m, mjx.put_model(m, device=jax.local_devices()[0])
+    # Concrete arrays even when first asked for inside a jit trace: the cache would otherwise keep tracers, and
+    # the next caller would get a leaked one. This process's first device: jax.devices()[0], MJX's default,
+    # belongs to another host in multi-host runs.
+    with jax.ensure_compile_time_eval():
+        return m, mjx.put_model(m, device=jax.local_devices()[0])
 
 
 @struct.dataclass

@@ -4,10 +4,13 @@
 gains, reward weights, margin, speed limit, obstacle motion) are data that ``reset`` stores in the state and
 ``step`` reads, so one compiled program serves many values (vmap ``reset`` over a batch of params).
 
-One env step (``1 / policy_freq`` s) holds the velocity command, runs the
-onboard controller at ``ctrl_freq`` and MJX physics at ``sim_freq`` inside
-``lax.scan``; collisions, gate crossings and goal arrivals are checked after
-every physics step. A drone that completes its mission leaves the course (it
+One env step (``1 / policy_freq`` s) holds the velocity command (late by the episode's latency, in
+controller ticks), runs the onboard controller's outer loop at ``ctrl_freq`` (the firmware's velocity PID,
+or the geometric controller) and, every physics step, its attitude and rate loops (firmware PID), the rotor
+lag and MJX physics at ``sim_freq``, all inside ``lax.scan``; collisions, gate crossings and goal arrivals are
+checked after every physics step. With domain randomisation (``config.randomize``) ``reset`` draws the
+episode's drone (``Onboard.params``) around the nominal parameters, and the policy sees observations built
+from noisy positions (the critic's are exact). A drone that completes its mission leaves the course (it
 stops and no longer counts for collisions or as a neighbour), as a finished
 drone lands in real flights. Track starts can be staggered (``start_interval``): a drone
 hovers where it is, earning nothing, until its release time. The episode terminates when every drone has
