@@ -169,7 +169,7 @@ class SwarmEnv:
         onboard = Onboard(pid=pid, rpm=jnp.broadcast_to(hover_rpm, (n, 4)), commands=jnp.zeros((2, n, 3)),
                           obs_history=jnp.broadcast_to(obs, (cfg.randomize.max_delay,) + obs.shape),
                           key=jax.random.fold_in(key, 2), params=drawn)
-        seen = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)[0]
+        seen, onboard = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)
         state = State(data=data, obs=seen, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
                       done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
                       metrics={}, info={}, params=params, onboard=onboard)
