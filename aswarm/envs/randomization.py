@@ -88,7 +88,8 @@ def sample(key: jax.Array, nominal, r: Randomization, ticks_per_step: int):
     )
     gain = _uniform(keys[4], r.gains)
     pid = nominal.pid.replace(**{name: getattr(nominal.pid, name) * gain for name in GAIN_FIELDS})
-    latency = jnp.floor(_uniform(keys[5], r.latency) * ticks_per_step)
+    # Whole ticks; the nudge keeps a range of one value (SITL's) from flooring 0.7 * 10 = 6.9999995 to 6.
+    latency = jnp.floor(_uniform(keys[5], r.latency) * ticks_per_step + 1e-4)
     delay = jax.random.randint(keys[7], (), int(r.mocap_delay[0]), int(r.mocap_delay[1]) + 1)
     return nominal.replace(cf=cf, pid=pid, latency_ticks=latency, mocap_noise=_uniform(keys[6], r.mocap_noise),
                            mocap_delay=delay.astype(jnp.float32))

@@ -29,7 +29,7 @@ from aswarm import config_args, envs
 from aswarm.analysis import evaluate
 from aswarm.analysis.protocol import EVAL_SEED
 from aswarm.envs.dynamics import drone_state
-from aswarm.envs.randomization import OFF
+from aswarm.envs.randomization import Randomization
 from aswarm.envs.scenarios import cylinders_at
 from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle
 from aswarm.flight.estimator import EstimatorConfig
@@ -144,17 +144,16 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
             raise ValueError(f"invalid {name}={v!r}: allowed: a factor > 0 of the nominal value")
     b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
     env = make_env(b, scenario, env_overrides)
-    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=OFF))  # the plant: one exact drone
+    latency, ticks = split_latency(latency_ms, env.config)
+    # The plant: one exact drone, "randomised" over ranges of one value each, so that its mass, thrust constant
+    # and command latency (in controller ticks, compiled in only where there is some) are this run's.
+    one = Randomization(mass=(mass_scale,) * 2, thrust_constant=(thrust_scale,) * 2, torque_constant=(1.0, 1.0),
+                        motor_tau=(1.0, 1.0), gains=(1.0, 1.0), latency=(ticks / env.ticks,) * 2,
+                        mocap_noise=(0.0, 0.0), mocap_delay=(0, 0))
+    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=one))
     cfg = env.config
-    latency, ticks = split_latency(latency_ms, cfg)
-    nominal = env.default_params
-    params = nominal.replace(
-        cf=nominal.cf.replace(mass=nominal.cf.mass * mass_scale, inertia=nominal.cf.inertia * mass_scale,
-                              kf=nominal.cf.kf * thrust_scale,
-                              max_motor_thrust=nominal.cf.max_motor_thrust * thrust_scale),
-        latency_ticks=jnp.float32(ticks))
     sim = simulator(cfg, episodes)
-    state, sensed = sim.reset(jax.random.PRNGKey(seed), params)
+    state, sensed = sim.reset(jax.random.PRNGKey(seed))
     layout = jax.device_get(state.layout)
     # A pose is fresh for the controller if it is at most `latency` steps old: the stale limit
     # grows with the configured latency, or every drone would hover.
