@@ -55,8 +55,7 @@ class Simulator(NamedTuple):
 
 @functools.lru_cache(maxsize=4)
 def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
-    """Jitted, vmapped reset and step of ``episodes`` worlds (cached: tests and repeated runs compile once);
-    ``reset(key, params=None)`` takes the drone's :class:`~aswarm.envs.params.EnvParams` (the same for every world)."""
+    """Jitted, vmapped reset and step of ``episodes`` worlds (cached: tests and repeated runs compile once)."""
     env = envs.SwarmEnv(config)
     n = env.num_agents
 
@@ -66,8 +65,8 @@ def simulator(config: envs.EnvConfig, episodes: int) -> Simulator:
         return Sensed(d.pos, d.quat, s.data.time, cyl_pos, cyl_vel, s.done, s.metrics)
 
     @jax.jit
-    def reset(key, params=None):
-        s = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, episodes), params)
+    def reset(key):
+        s = jax.vmap(env.reset)(jax.random.split(key, episodes))
         return s, sense(s)
 
     @jax.jit
