@@ -49,7 +49,7 @@ def main() -> None:
             axes[1, col].plot(r["t"], r["tilt"] if axis == 0 else r["rpm"].mean(-1), color=f"C{i}")
             axes[0, col].set_title(f"0 -> 1 m/s in {label}")
         c = step_response.characterise(cfg)
-        sf = SafetyFilterConfig().fitted(c.lag_xy) if "no rotor lag" not in name else None
+        sf = SafetyFilterConfig().fitted(c.lag_xy, c.lag_z) if "no rotor lag" not in name else None
         rows.append(f"| {name} | {c.lag_xy:.2f} | {c.lag_z:.2f} | {c.accel_xy:.2f} | {c.climb:.2f} | {c.sink:.2f} | "
                     f"{c.stop_distance:.2f} | {f'{sf.gain_max:.2f}' if sf else '-'} |")
     for col in range(2):

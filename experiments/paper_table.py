@@ -47,7 +47,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--out", type=Path, default=Path("experiments/results"))
     p.add_argument("--runs", type=Path, default=Path("runs/paper_table"))
+    p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE",
+                   help="env field for every method and scenario, as aswarm train's --env (repeatable; nested "
+                        "fields dotted: --env controller=geometric)")
     args = p.parse_args(argv)
+    from aswarm import config_args
+    from aswarm.envs.config import EnvConfig
+
+    try:
+        args.env = tuple(config_args.parse_assignments(args.env, EnvConfig).items())
+    except ValueError as e:
+        p.error(str(e))
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     args.scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     for m in args.methods:
@@ -67,16 +77,16 @@ def train_and_evaluate(method: str, scenario: str, args: argparse.Namespace) -> 
     """One method on one scenario: train (learned methods) and evaluate, with the filter where it has none."""
     import jax
 
-    from aswarm import envs
+    from aswarm import config_args, envs
     from aswarm.agents.config import TrainConfig
     from aswarm.analysis import evaluate
     from aswarm.baselines import mpc
     from aswarm.training import runner
 
-    env_overrides = tuple(QUICK_ENV[scenario]) if args.quick else ()
+    env_overrides = args.env + (tuple(QUICK_ENV[scenario]) if args.quick else ())
     t0 = time.perf_counter()
     if method == "mpc":
-        env = envs.make(scenario, **dict(env_overrides))
+        env = envs.SwarmEnv(config_args.replace_fields(envs.preset(scenario), dict(env_overrides)))
         mpc_config = mpc.MPCConfig(samples=16, horizon=5) if args.quick else mpc.MPCConfig()
         rec = mpc.rollout_mpc(env, mpc_config, args.episodes, jax.random.PRNGKey(EVAL_SEED + args.seed))
         result = evaluate.summarize({k: jax.device_get(v) for k, v in rec.items()})

@@ -377,6 +377,74 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
     np.testing.assert_allclose(np.asarray(u_jax), u_np, atol=1e-9)
 
 
+def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():
+    from aswarm.core.layout import CYL, NBR, OWN, ObsLayout
+
+    layout = ObsLayout(num_cylinders=3, num_neighbours=2)
+    rng = np.random.default_rng(9)
+    obs = _random_obs(rng, layout, (2, 3))
+    gain = rng.uniform(0.3, 2.0, (2, 3))
+    kw = dict(drone_radius=0.06, margin=0.1, gate_half_opening=0.3, gate_bar=0.05)
+    tau_xy, tau_z = 0.34, 0.22
+    # The same scene with every position moved to its look-ahead point p + τ v, by hand: the drone to
+    # (τ vx, τ vy, z + τ vz), each cylinder by τ v_c, each neighbour by τ v_k, the gates staying where they are.
+    own, cyl, nbr = (x.copy() for x in layout.split(obs))
+    tau = np.array([tau_xy, tau_xy, tau_z])
+    v = OWN.get(own, "vel")
+    shift = tau * v
+    radius = np.linalg.norm(CYL.get(cyl, "rel_xy"), axis=-1) - CYL.get(cyl, "clearance")
+    rel = CYL.get(cyl, "rel_xy") + tau_xy * (CYL.get(cyl, "vel_xy") - v[..., None, :2])
+    cyl[..., CYL.slice("rel_xy")] = rel
+    cyl[..., CYL.column("clearance")] = np.linalg.norm(rel, axis=-1) - radius
+    nbr[..., NBR.slice("rel_pos")] += tau * NBR.get(nbr, "rel_vel")
+    own[..., OWN.slice("altitude")] += shift[..., 2:]
+    own[..., OWN.slice("wall_clearance")] += shift @ np.asarray(barriers.WALL_NORMALS).T
+    for name in ("target_rel", "prev_gate_rel"):
+        own[..., OWN.slice(name)] += shift
+    moved = np.concatenate([own, cyl.reshape(2, 3, -1), nbr.reshape(2, 3, -1)], -1)
+    ahead = barriers.obs_rows(layout, obs, gain, lookahead=(tau_xy, tau_z), **kw)
+    by_hand = barriers.obs_rows(layout, moved, gain, **kw)
+    # The gate rows: the plain rows put the drone at x = y = 0, the look-ahead ones at its look-ahead point;
+    # the bars are the same, so the rows are (A, b, mask, h) alike.
+    for a, b in zip(ahead, by_hand):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    assert not np.allclose(ahead.h, barriers.obs_rows(layout, obs, gain, **kw).h)
+    rows_jax = jax.jit(lambda o, g: barriers.obs_rows(layout, o, g, lookahead=(tau_xy, tau_z), **kw))(
+        jnp.asarray(obs, jnp.float32), jnp.asarray(gain, jnp.float32))
+    for a, b in zip(ahead, rows_jax):
+        np.testing.assert_allclose(np.asarray(b, float), a, atol=3e-5)
+
+
+@pytest.mark.parametrize("lookahead, holds", [(0.0, False), (0.3, True)])
+def test_look_ahead_keeps_a_lagging_drone_off_the_floor(lookahead, holds):
+    """A point mass whose velocity follows the command with a first-order lag τ = 0.3 s (v̇ = (u − v)/τ), told to
+    dive at 2 m/s from 1 m, filtered at 100 Hz with gain 2/s. The single-integrator floor row lets it sink into
+    the margin (it brakes only once u changes, and v lags u); at the look-ahead point p + τ v the row is exact
+    for this drone (q̇ = u), so its height never falls below the kept 0.16 m (radius 0.06 + margin 0.1)."""
+    from aswarm.core.layout import OWN, ObsLayout
+
+    layout = ObsLayout(num_cylinders=0, num_neighbours=0)
+    tau, dt, sub = 0.3, 0.01, 10
+    z, vz, lowest = 1.0, 0.0, np.inf
+    safety = SafetyFilterConfig(lookahead_xy=lookahead, lookahead_z=lookahead)
+    for _ in range(300):
+        obs = np.zeros(layout.size)
+        obs[OWN.slice("altitude")] = z
+        obs[OWN.slice("vel")] = (0.0, 0.0, vz)
+        obs[OWN.slice("wall_clearance")] = 10.0
+        u = np_cbf.filter_from_obs(layout, obs[None], np.array([[0.0, 0.0, -2.0]]), np.array([2.0]), U_MAX, 0.06,
+                                   safety).u[0, 2]
+        for _ in range(sub):  # exact for the lag within a step: v relaxes to u with time constant τ
+            decay = np.exp(-dt / sub / tau)
+            z += u * dt / sub + (vz - u) * tau * (1 - decay)
+            vz = u + (vz - u) * decay
+            lowest = min(lowest, z)
+    if holds:
+        assert lowest >= 0.16 - 1e-3, lowest
+    else:  # seen: 0.098, 6 cm into the margin
+        assert lowest < 0.16 - 0.03, lowest
+
+
 # ---------------------------------------------------------------- SafetyFilterConfig
 def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map_into_it():
     cfg = SafetyFilterConfig(margin=0.2, gain_min=0.5, gain_max=3.0, neighbour_share=0.7, max_iter=12)
@@ -387,7 +455,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
            "gain_min": 0.3, "gain_max": 2.0, "penalty_max": 2.0, "margin": 0.1, "drone_radius": 0.06,
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
-    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False)
+    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).
@@ -407,6 +475,14 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(gain_min=3.0)
     with pytest.raises(ValueError, match="invalid safety_filter.neighbour_share"):
         SafetyFilterConfig(neighbour_share=0.0)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"):
+        SafetyFilterConfig(lookahead_z=-0.1)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
+        SafetyFilterConfig(fit_lookahead=1)
+    # Fitted to a drone: gains scaled to its horizontal lag, look-aheads set to its lags (unless asked not to).
+    fitted = SafetyFilterConfig().fitted(0.5, 0.2)
+    assert (fitted.gain_max, fitted.lookahead_xy, fitted.lookahead_z, fitted.fit_to_drone) == (1.0, 0.5, 0.2, False)
+    assert SafetyFilterConfig(fit_lookahead=False).fitted(0.5, 0.2).lookahead_xy == 0.0
 
 
 def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch, tmp_path):

@@ -204,6 +204,21 @@ def test_paper_reward_is_inverse_distance(race):
     np.testing.assert_allclose(s.reward, 1 / (d + 0.001), rtol=1e-4)
 
 
+def test_command_rate_penalty_charges_the_change_of_command():
+    # The same steps with and without the penalty: rewards differ by w ||u_t - u_(t-1)||^2 per drone (the
+    # command before the first step is 0), and nothing else changes.
+    cmds = jnp.array([[[1.0, 0.0, 0.5]], [[-1.0, 0.5, 0.5]]])
+    rewards = {}
+    for w in (0.0, 0.3):
+        env = envs.make("hover", command_rate_penalty=w, randomize=OFF)
+        step, s = jax.jit(env.step), env.reset(jax.random.PRNGKey(0))
+        rewards[w] = []
+        for u in cmds:
+            s = step(s, u)
+            rewards[w].append(float(s.reward[0]))
+    np.testing.assert_allclose(np.subtract(rewards[0.0], rewards[0.3]), [0.3 * 1.25, 0.3 * 4.25], rtol=1e-4)
+
+
 def test_cost_rises_inside_the_safety_margin():
     env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
@@ -231,6 +246,7 @@ def test_cost_rises_inside_the_safety_margin():
         ("race", {"reward": "money"}, r"invalid reward='money': allowed: shaped, paper"),
         ("obstacles", {"layout_draws": 0}, r"invalid layout_draws=0: must be >= 1"),
         ("obstacles", {"min_obstacle_gap": -0.1}, r"invalid min_obstacle_gap=-0.1: must be >= 0"),
+        ("race", {"command_rate_penalty": -0.5}, r"invalid command_rate_penalty=-0.5: must be >= 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(name, overrides, message):

@@ -5,6 +5,7 @@ import importlib.util
 from pathlib import Path
 
 import pytest
+from drones import GEOMETRIC_FLAGS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -21,7 +22,7 @@ def test_quick_table_runs_end_to_end(tmp_path):
     out = tmp_path / "results"
     # One scenario, one trained method (evaluated with and without the filter) and the MPC keep CI short;
     # the full command runs every method the same way.
-    assert mod.main(["--quick", "--methods", "mappo,mpc", "--scenarios", "race",
+    assert mod.main(["--quick", "--methods", "mappo,mpc", "--scenarios", "race", *GEOMETRIC_FLAGS,
                      "--out", str(out), "--runs", str(tmp_path / "runs")]) == 0
     rows = list(csv.DictReader((out / "paper_table_quick.csv").open()))
     assert [(r["method"], r["variant"]) for r in rows] == [("mappo", ""), ("mappo", "+ filter"), ("mpc", "")]

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax.training.acme import running_statistics
+from drones import GEOMETRIC
 
 from aswarm import cli
 from aswarm.agents.config import TrainConfig
@@ -18,7 +19,7 @@ from aswarm.training import checkpoint, runner
 
 # 50 policy steps with 2 drones and 3 cylinders: a third less to compile than the full race.
 # Exact observations: the recording is checked against the true poses.
-SHORT = (("episode_seconds", 1.0), ("num_agents", 2), ("num_obstacles", 3), ("randomize.enabled", False))
+SHORT = GEOMETRIC + (("episode_seconds", 1.0), ("num_agents", 2), ("num_obstacles", 3))
 
 
 def png_size(path) -> tuple[int, int]:

@@ -14,6 +14,7 @@ import chex
 import jax
 import numpy as np
 import pytest
+from drones import GEOMETRIC
 
 from aswarm import cli
 from aswarm.agents.config import TrainConfig
@@ -23,7 +24,8 @@ from aswarm.flight import runtime as fc
 from aswarm.training import checkpoint, runner, sweep
 
 TINY = TrainConfig(scenario="hover", method="mappo", num_envs=8, rollout_steps=16, updates_per_chunk=2,
-                   total_steps=8 * 16 * 6, checkpoint_minutes=1e-6, actor_hidden=(8,), critic_hidden=(8,))
+                   total_steps=8 * 16 * 6, checkpoint_minutes=1e-6, actor_hidden=(8,), critic_hidden=(8,),
+                   env_overrides=GEOMETRIC)
 NOISE = "Event loop is closed"
 
 

@@ -23,9 +23,14 @@ def _make(name, **overrides):
     return envs.make(name, randomize=OFF, **overrides)
 
 
+def _lags(config) -> tuple[float, float]:
+    drone = characterise(config)
+    return drone.lag_xy, drone.lag_z
+
+
 def _fitted(env) -> SafetyFilterConfig:
     """The default filter fitted to ``env``'s drone, as training and export fit it."""
-    return SafetyFilterConfig().fitted(characterise(env.config).lag_xy)
+    return SafetyFilterConfig().fitted(*_lags(env.config))
 
 
 def _run(env, state, command, use_filter, seconds=3.0, gain=None, margin=MARGIN, log=None, until=None):
@@ -167,7 +172,7 @@ def test_largest_default_gain_is_safe_at_full_speed():
     """The gain range is bounded by what the controller's lag allows: full speed, off-centre, gain_max."""
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     cfg = _fitted(env)
-    assert TrainConfig().safety_filter.fitted(characterise(env.config).lag_xy) == cfg
+    assert TrainConfig().safety_filter.fitted(*_lags(env.config)) == cfg
     s = env.reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))

@@ -15,6 +15,7 @@ import jax
 import numpy as np
 import pytest
 from curves import assert_same_curve, assert_same_params
+from drones import GEOMETRIC
 
 from aswarm.analysis import evaluate
 from aswarm.training import runner
@@ -50,21 +51,24 @@ sweep.run(sweep.load(sys.argv[1]), sys.argv[2], progress=False, mesh=mesh, log=p
 """
 
 
-# `aswarm train` over both devices (its default), over one (--devices 1), and stopped after 1 update then resumed.
+# `aswarm train` over both devices (its default), over one (--devices 1), and stopped after 1 update then resumed,
+# on the geometric drone (tests/drones.py).
 TRAIN = """
 import sys
 from aswarm import cli
 from aswarm.training import runner
 from aswarm.agents.config import TrainConfig
 out = sys.argv[1]
+geometric = GEOMETRIC
 small = dict(scenario="obstacles", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
              total_steps=16 * 8 * 3, updates_per_chunk=1)
-flags = [f"--{k.replace('_', '-')}={v}" for k, v in small.items()]
+flags = [f"--{k.replace('_', '-')}={v}" for k, v in small.items()] + [f"--env={k}={v}" for k, v in geometric]
+small["env_overrides"] = geometric
 assert cli.main(["train", *flags, "--quiet", "--out", f"{out}/two"]) == 0
 assert cli.main(["train", *flags, "--devices", "1", "--quiet", "--out", f"{out}/one"]) == 0
 runner.train(TrainConfig(**small), f"{out}/part", progress=False, max_updates=1)
 runner.train(None, f"{out}/part", resume=True, progress=False)
-"""
+""".replace("GEOMETRIC", repr(GEOMETRIC))
 
 
 # Other devices sum in another order: curves agree to 2e-3 of their scale after 3-4 updates (seen in CI:

@@ -8,14 +8,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from drones import GEOMETRIC, GEOMETRIC_FLAGS
 
 from aswarm import envs
 from aswarm.agents.config import TrainConfig
 from aswarm.core.safety import SafetyFilterConfig
 from aswarm.training import checkpoint, runner
 
+# One small run for the trainer's mechanics (methods differ), on the geometric drone (tests/drones.py): the
+# same program for every test that uses it as it is (the persistent compile cache, conftest.py).
 SMALL = dict(scenario="hover", num_envs=32, rollout_steps=8, minibatches=2, epochs=2, updates_per_chunk=2,
-             total_steps=32 * 8 * 4)
+             total_steps=32 * 8 * 4, env_overrides=GEOMETRIC)
 
 
 def _restore(run_dir):
@@ -70,7 +73,7 @@ def test_a2c_takes_one_full_batch_step_per_rollout():
 def test_eval_json_is_the_only_stdout(tmp_path, capsys):
     from aswarm import cli
 
-    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    cfg = TrainConfig(method="mappo", **SMALL)
     run = runner.train(cfg, tmp_path / "r", progress=False)
     capsys.readouterr()
     assert cli.main(["eval", "--checkpoint", str(run), "--episodes", "8", "--json"]) == 0
@@ -99,7 +102,7 @@ def test_checkpoint_round_trip_and_resume_matches_uninterrupted(tmp_path):
 
 
 def test_existing_run_folder_is_not_overwritten(tmp_path):
-    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    cfg = TrainConfig(method="mappo", **SMALL)
     runner.train(cfg, tmp_path / "r", progress=False)
     with pytest.raises(ValueError, match="already holds checkpoints: use --resume"):
         runner.train(cfg, tmp_path / "r", progress=False)
@@ -135,7 +138,7 @@ def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
     (tmp_path / "config.json").write_text("{not json")
     with pytest.raises(checkpoint.CheckpointError, match="not a valid aswarm run config"):
         checkpoint.load_config(tmp_path)
-    cfg = TrainConfig(method="mappo", **{**SMALL, "total_steps": 32 * 8 * 2})
+    cfg = TrainConfig(method="mappo", **SMALL)
     run = runner.train(cfg, tmp_path / "r", progress=False)
     # The policy-only copy (how the shipped pretrained policy is made) restores the same arrays.
     from aswarm.analysis import evaluate
@@ -197,7 +200,7 @@ def test_correction_penalty_charges_the_filters_correction_in_the_training_rewar
 
     # A low fixed gain makes the floor barrier slow every random descent faster than 0.25 m/s.
     base = dict(method="fixed_cbf", safety_filter=SafetyFilterConfig(fixed_gain=0.3), scenario="hover", num_envs=16,
-                rollout_steps=8, minibatches=2, total_steps=16 * 8)
+                rollout_steps=8, minibatches=2, total_steps=16 * 8, env_overrides=GEOMETRIC)
     # The penalty is a value-only hyperparameter: one compiled trainer serves both values.
     _, init, update_chunk, _ = make_train(TrainConfig(**base), sweep_fields=("correction_penalty",))
     init, chunk = jax.jit(init), jax.jit(update_chunk, static_argnums=1)
@@ -218,7 +221,7 @@ def test_policy_with_k_nearest_neighbours_flies_other_swarm_sizes(tmp_path):
     from aswarm.analysis import evaluate
 
     cfg = TrainConfig(scenario="hover", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
-                      total_steps=16 * 8, env_overrides=(("max_neighbours", 2), ("num_agents", 2)))
+                      total_steps=16 * 8, env_overrides=GEOMETRIC + (("max_neighbours", 2), ("num_agents", 2)))
     run = runner.train(cfg, tmp_path / "k2", progress=False)
     for n in (1, 6):  # fewer drones than K (absent rows) and more (the 2 nearest)
         out = evaluate.evaluate_checkpoint(run, episodes=4, env_overrides=[f"num_agents={n}"])
@@ -245,7 +248,8 @@ def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monke
     from aswarm.envs import presets
     from aswarm.training import run_config
 
-    cfg = TrainConfig(method="mappo", env_overrides=(("cf.mass", 0.03), ("gains.max_tilt_deg", 20.0)), **SMALL)
+    cfg = TrainConfig(method="mappo", **{**SMALL, "env_overrides": GEOMETRIC + (("cf.mass", 0.03),
+                                                                            ("gains.max_tilt_deg", 20.0))})
     assert cfg.env.cf.mass == 0.03 and cfg.env.gains.max_tilt_deg == 20.0 and cfg.env.scenario == "hover"
     runner.write_config(tmp_path, cfg)
     # Editing a preset changes new runs only: the stored run keeps the env it was trained on.
@@ -330,7 +334,7 @@ def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
     flags = ["--scenario", "hover", "--method", "mappo", "--num-envs", "32", "--rollout-steps", "8",
              "--updates-per-chunk", "2", "--quiet"]
     run = tmp_path / "r"
-    assert cli.main(["train", *flags, "--total-steps", str(32 * 8), "--out", str(run)]) == 0
+    assert cli.main(["train", *flags, *GEOMETRIC_FLAGS, "--total-steps", str(32 * 8), "--out", str(run)]) == 0
     capsys.readouterr()
     for extra, flag in [(["--actor-lr", "0.1"], "--actor-lr"), (["--num-envs", "64"], "--num-envs"),
                         (["--method", "a2c"], "--method"), (["--env", "num_agents=2"], "--env"),

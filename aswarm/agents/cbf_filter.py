@@ -274,7 +274,8 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     def one(o, g, u):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
         A, b, mask, _ = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
                                           gate_half_opening=gate_half_opening, gate_bar=gate_bar,
-                                          floor_z=safety.floor_z, neighbour_share=safety.neighbour_share)
+                                          floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
+                                          lookahead=(safety.lookahead_xy, safety.lookahead_z))
         return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol)
 
     fn = one

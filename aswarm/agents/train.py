@@ -65,7 +65,8 @@ def fit_safety_filter(config: TrainConfig, env: envs.SwarmEnv) -> TrainConfig:
         return config
     from aswarm.analysis.step_response import characterise
 
-    return dataclasses.replace(config, safety_filter=sf.fitted(characterise(env.config).lag_xy))
+    drone = characterise(env.config)
+    return dataclasses.replace(config, safety_filter=sf.fitted(drone.lag_xy, drone.lag_z))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -204,7 +204,8 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 
 
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
-             gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5) -> Rows:
+             gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
+             lookahead: tuple[float, float] = (0.0, 0.0)) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -217,6 +218,12 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     that gate (non-zero direction). The gate passed last is kept: right after its plane a drone turning
     towards the next gate can clip its frame from behind. The walls keep the drone centre inside the
     arena: without them, swarms of 8 and 16 drones pushed their outer drones out of it (README).
+
+    ``lookahead`` (τ_xy, τ_z) in s: every barrier is taken at the drone's look-ahead point q = p + τ v (and
+    each moving hazard's at c + τ v_c) instead of its position. A drone whose velocity follows the command
+    with a first-order lag τ (v̇ = (u − v)/τ) has q̇ = v + τ v̇ = u exactly, so the single-integrator rows
+    above hold for q on the lagging drone; and p, the exponential average of q's past (ṗ = (q − p)/τ),
+    stays in every convex safe set (floor, walls) that q keeps. (0, 0) is the plain single integrator.
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -226,29 +233,41 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     zero = xp.zeros_like(alt)
     pos = xp.concat([zero, zero, alt], axis=-1)
 
-    def gate(at, rel_cols, normal_cols):  # gate_rows' (pos, centre, direction, present) for the columns' gate(s)
+    rel = CYL.get(cyl, "rel_xy")
+    cyl_radius = geometry.norm(rel) - CYL.get(cyl, "clearance") - drone_radius
+    cyl_vel = CYL.get(cyl, "vel_xy")
+    nbr_vel = NBR.get(nbr, "rel_vel") + vel[..., None, :]
+    nbr_pos = NBR.get(nbr, "rel_pos") + pos[..., None, :]
+    clearance = OWN.get(own, "wall_clearance")
+    at = pos
+    if any(t != 0 for t in lookahead):  # (a static choice: the plain rows trace as they always did)
+        tau_xy, tau_z = lookahead
+        tau = xp.asarray((tau_xy, tau_xy, tau_z), dtype=obs.dtype)
+        at = pos + tau * vel
+        rel = rel + tau_xy * cyl_vel
+        nbr_pos = nbr_pos + tau * nbr_vel
+        normals = xp.asarray(WALL_NORMALS, dtype=obs.dtype)
+        clearance = clearance + xp.sum(normals * (tau * vel)[..., None, :], axis=-1)
+
+    def gate(p, q, rel_cols, normal_cols):  # gate_rows' (point q, centre, direction, present) for the columns' gates
         normal = own[..., normal_cols]
         present = (xp.sum(normal**2, axis=-1) > _GATE_PRESENT_SQ) & (gate_bar > 0)
-        return at, at - own[..., rel_cols], normal, present
+        return q, p - own[..., rel_cols], normal, present
 
     # Under jit: one gate_rows call per gate (current, previous), as stacking them along an axis for one pass
     # changed the bits of the simulator's filter (another fusion of the compiled program). numpy computes value by
     # value, so there both gates go through one call, as [..., 2 gates, 3] (half the operations, every step).
     if numpy:
-        gates = [gate(pos[..., None, :], _GATE_REL_COLS, _GATE_NORMAL_COLS)]
+        gates = [gate(pos[..., None, :], at[..., None, :], _GATE_REL_COLS, _GATE_NORMAL_COLS)]
     else:
-        gates = [gate(pos, OWN.slice(rel), OWN.slice(normal)) for rel, normal in _GATE_FIELDS]
-    rel = CYL.get(cyl, "rel_xy")
-    cyl_radius = geometry.norm(rel) - CYL.get(cyl, "clearance") - drone_radius
-    nbr_pos = NBR.get(nbr, "rel_pos") + pos[..., None, :]
-    nbr_vel = NBR.get(nbr, "rel_vel") + vel[..., None, :]
+        gates = [gate(pos, at, OWN.slice(rel), OWN.slice(normal)) for rel, normal in _GATE_FIELDS]
     gamma = xp.asarray(gain, dtype=obs.dtype)[..., None]
-    points = _barrier_parts(pos, vel, rel, cyl_radius, CYL.get(cyl, "vel_xy"), CYL.present(cyl), nbr_pos, nbr_vel,
+    points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
                             neighbour_share=neighbour_share)
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
-    walls = wall_rows(OWN.get(own, "wall_clearance"), gamma, drone_radius=drone_radius, margin=margin)
+    walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)
     frames = [gate_rows(*g, gamma[..., None, :] if numpy else gamma, half_opening=gate_half_opening, bar=gate_bar,
                         drone_radius=drone_radius, margin=margin) for g in gates]
     if numpy:

@@ -26,6 +26,13 @@ class SafetyFilterConfig:
     # built for a drone (agents.train.Agent.build measures it: analysis.step_response.characterise). The
     # fitted config has this False and the fitted gains, and that is what a run's filter and its export use.
     fit_to_drone: bool = True
+    # s: the barriers hold at the look-ahead point p + lookahead * v (horizontal, vertical) rather than at p, so
+    # that they are exact for a drone whose velocity lags the command by that time constant
+    # (aswarm.core.barriers.obs_rows). 0 is the single-integrator model.
+    lookahead_xy: float = 0.0
+    lookahead_z: float = 0.0
+    # With fit_to_drone: set the two look-aheads to the drone's measured lags (horizontal, vertical).
+    fit_lookahead: bool = True
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
@@ -36,11 +43,11 @@ class SafetyFilterConfig:
     tol: float = 1e-6
 
     def __post_init__(self) -> None:
-        if not isinstance(self.fit_to_drone, bool):
-            raise ValueError(f"invalid safety_filter.fit_to_drone={self.fit_to_drone!r}: allowed: true or false")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name == "fit_to_drone":
+            if f.name in _FLAGS:
+                if not isinstance(v, bool):
+                    raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: true or false")
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: a finite number")
@@ -49,20 +56,27 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        if self.margin < 0:
-            raise ValueError(f"invalid safety_filter.margin={self.margin!r}: allowed: >= 0")
+        for name in ("margin", "lookahead_xy", "lookahead_z"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
 
 
-    def fitted(self, lag: float) -> SafetyFilterConfig:
-        """The gains for a drone whose velocity reaches 63 % of a step in ``lag`` s (unchanged if not slower than
-        the drone they were tuned on, or if ``fit_to_drone`` is off)."""
+    def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
+        """The filter for a drone whose velocity reaches 63 % of a step in ``lag_xy`` s horizontally and ``lag_z``
+        vertically: gains scaled by TUNED_LAG / lag_xy where the drone is slower than the one they were tuned on,
+        and with ``fit_lookahead`` the look-aheads set to the lags (unchanged if ``fit_to_drone`` is off)."""
         if not self.fit_to_drone:
             return self
-        scale = min(1.0, TUNED_LAG / lag)
+        scale = min(1.0, TUNED_LAG / lag_xy)
+        ahead = {"lookahead_xy": lag_xy, "lookahead_z": lag_z} if self.fit_lookahead else {}
         return dataclasses.replace(self, gain_min=self.gain_min * scale, gain_max=self.gain_max * scale,
-                                   fixed_gain=self.fixed_gain * scale, fit_to_drone=False)
+                                   fixed_gain=self.fixed_gain * scale, fit_to_drone=False, **ahead)
+
+
+# The config's true/false fields; every other field is a number.
+_FLAGS = ("fit_to_drone", "fit_lookahead")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -103,7 +117,8 @@ def manifest_fields(config: SafetyFilterConfig) -> dict:
 def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     """The config a manifest's ``safety_filter`` section holds. Every field has been written since format 1
     (bundles from before this config have them too), so a missing one is an error, not a default."""
-    safety = {"fit_to_drone": False, **safety}  # bundles from before the field hold fitted (hand-set) gains
+    # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
+    safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

@@ -79,6 +79,10 @@ class EnvConfig:
     finish_bonus: float = 20.0
     collision_penalty: float = 100.0  # the paper's -100
     time_penalty: float = 0.5  # per second, while flying
+    # Per (m/s)² of change of the velocity command from one policy step to the next. The firmware drone gives up
+    # thrust to the attitude loop when the commanded tilt swings (its power distribution caps the motors), and
+    # commands that swing every step made it sink into the floor while commanded up (README, issue #12).
+    command_rate_penalty: float = 0.02
     # Track progress is measured in the current gate's frame as |along| + lateral_weight * |off the axis|
     # + wrong_side_weight * (depth past the plane, not through the opening). With plain distance to the
     # centre, policies learnt to hover beside or behind the gate (1 drone, 1M steps: no gate passed);
@@ -197,7 +201,7 @@ def validate(c: EnvConfig) -> None:
                  "safety_margin", "track_height"):
         if getattr(c, name) <= 0:
             _fail(name, getattr(c, name), "must be > 0")
-    for name in ("lateral_weight", "wrong_side_weight"):
+    for name in ("lateral_weight", "wrong_side_weight", "command_rate_penalty"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.start_interval < 0:

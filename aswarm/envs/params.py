@@ -105,6 +105,7 @@ class EnvParams:
     finish_bonus: jax.Array
     collision_penalty: jax.Array
     time_penalty_per_step: jax.Array  # derived: time_penalty * dt
+    command_rate_penalty: jax.Array
     lateral_weight: jax.Array
     wrong_side_weight: jax.Array
     paper_epsilon: jax.Array
@@ -122,7 +123,8 @@ class EnvParams:
             max_speed=_f32(cfg.max_speed), safety_margin=_f32(cfg.safety_margin),
             progress_weight=_f32(cfg.progress_weight), gate_bonus=_f32(cfg.gate_bonus),
             finish_bonus=_f32(cfg.finish_bonus), collision_penalty=_f32(cfg.collision_penalty),
-            time_penalty_per_step=_f32(cfg.time_penalty * cfg.dt), lateral_weight=_f32(cfg.lateral_weight),
+            time_penalty_per_step=_f32(cfg.time_penalty * cfg.dt),
+            command_rate_penalty=_f32(cfg.command_rate_penalty), lateral_weight=_f32(cfg.lateral_weight),
             wrong_side_weight=_f32(cfg.wrong_side_weight), paper_epsilon=_f32(cfg.paper_epsilon),
             moving_amplitude=_f32(cfg.moving_amplitude), moving_omega=_f32(2 * np.pi / cfg.moving_period),
             pid=jax.tree.map(_f32, cfg.pid), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0), mocap_delay=_f32(0.0),

@@ -239,6 +239,9 @@ class SwarmEnv:
             progress = self._to_go(p0, layout, tr0.target, p) - self._to_go(drones.pos, layout, tr0.target, p)
             reward = (p.progress_weight * progress + p.gate_bonus * passed
                       + p.finish_bonus * newly_finished - p.time_penalty_per_step)
+        if cfg.command_rate_penalty:  # (a static choice: without it the program is the one it always was)
+            change = cmd - state.onboard.commands[0]
+            reward = reward - p.command_rate_penalty * jnp.sum(change * change, axis=-1)
         reward = jnp.where(newly_collided, -p.collision_penalty, reward)
         reward = jnp.where(active0, reward, 0.0)
         # Times the reciprocal: what XLA compiled the division by the constant margin into before it was data.

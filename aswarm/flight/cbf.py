@@ -447,6 +447,7 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     obs = np.asarray(obs, np.float64)
     rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
                              margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
-                             floor_z=safety.floor_z, neighbour_share=safety.neighbour_share)
+                             floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
+                             lookahead=(safety.lookahead_xy, safety.lookahead_z))
     return filter_velocity(cmd, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
                            tol=safety.tol)

@@ -26,11 +26,19 @@ def _legacy_drone() -> dict:
     return {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in LEGACY_DRONE.items()}
 
 
+# EnvConfig fields added after issue #12, as a stored env without them was.
+ADDED_SINCE = {"command_rate_penalty": 0.0}
+
+
 def with_legacy_drone(env: dict) -> dict:
     """A stored ``env`` section with the fields issue #12 added filled in as the drone was before them (the
     geometric controller at 250 Hz, no rotor lag, no drag, nothing randomised): a run that predates them was
     trained on that drone. Fields it has are kept; a section that has the controller field is returned as is."""
-    if not isinstance(env, dict) or "controller" in env:
+    if not isinstance(env, dict):
+        return env
+    # Fields added since, with the value that leaves the env as it was.
+    env = {**ADDED_SINCE, **env}
+    if "controller" in env:
         return env
     out = dict(env)
     for k, v in _legacy_drone().items():
@@ -84,14 +92,15 @@ def _train_fields(path: Path, train: dict) -> dict:
         train = safety.nest_legacy(train)  # runs from before TrainConfig.safety_filter: flat gain_min, ...
     except ValueError as e:
         raise CheckpointError(f"{path} is not a valid aswarm run config: {e}") from e
-    # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted.
+    # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted; runs from
+    # before fit_lookahead had their gains fitted, not the look-aheads.
     sf = train.get("safety_filter")
     if sf is None:
-        train["safety_filter"] = {"fit_to_drone": False}
-    elif isinstance(sf, dict) and "fit_to_drone" not in sf:
-        train["safety_filter"] = {**sf, "fit_to_drone": False}
+        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False}
+    elif isinstance(sf, dict):
+        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, **sf}
     elif isinstance(sf, safety.SafetyFilterConfig):  # nest_legacy's, from flat fields: an old run
-        train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False)
+        train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False, fit_lookahead=False)
     types = config_args.field_types(TrainConfig)
     unknown = sorted(set(train) - set(types))
     if unknown:
