@@ -340,14 +340,19 @@ def _random_obs(rng, layout, lead):
     return obs
 
 
-def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree():
+def _scene(seed):
+    """(layout, rng, random observations [2, 3, D], gains [2, 3], obs_rows' settings) of a small scene."""
     from aswarm.core.layout import ObsLayout
 
     layout = ObsLayout(num_cylinders=3, num_neighbours=2)
-    rng = np.random.default_rng(8)
+    rng = np.random.default_rng(seed)
     obs = _random_obs(rng, layout, (2, 3))
-    gain = rng.uniform(0.3, 2.0, (2, 3))
-    kw = dict(drone_radius=0.06, margin=0.1, gate_half_opening=0.3, gate_bar=0.05)
+    return layout, rng, obs, rng.uniform(0.3, 2.0, (2, 3)), dict(drone_radius=0.06, margin=0.1,
+                                                                 gate_half_opening=0.3, gate_bar=0.05)
+
+
+def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree():
+    layout, rng, obs, gain, kw = _scene(8)
     rows_np = barriers.obs_rows(layout, obs, gain, **kw)
     rows_jax = jax.jit(lambda o, g: barriers.obs_rows(layout, o, g, **kw))(jnp.asarray(obs, jnp.float32),
                                                                             jnp.asarray(gain, jnp.float32))
@@ -378,13 +383,9 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
 
 
 def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():
-    from aswarm.core.layout import CYL, NBR, OWN, ObsLayout
+    from aswarm.core.layout import CYL, NBR, OWN
 
-    layout = ObsLayout(num_cylinders=3, num_neighbours=2)
-    rng = np.random.default_rng(9)
-    obs = _random_obs(rng, layout, (2, 3))
-    gain = rng.uniform(0.3, 2.0, (2, 3))
-    kw = dict(drone_radius=0.06, margin=0.1, gate_half_opening=0.3, gate_bar=0.05)
+    layout, _, obs, gain, kw = _scene(9)
     tau_xy, tau_z = 0.34, 0.22
     # The same scene with every position moved to its look-ahead point p + τ v, by hand: the drone to
     # (τ vx, τ vy, z + τ vz), each cylinder by τ v_c, each neighbour by τ v_k, the gates staying where they are.

@@ -33,10 +33,10 @@ ADDED_SINCE = {"command_rate_penalty": 0.0}
 def with_legacy_drone(env: dict) -> dict:
     """A stored ``env`` section with the fields issue #12 added filled in as the drone was before them (the
     geometric controller at 250 Hz, no rotor lag, no drag, nothing randomised): a run that predates them was
-    trained on that drone. Fields it has are kept; a section that has the controller field is returned as is."""
+    trained on that drone. Fields added later (:data:`ADDED_SINCE`) get the value that leaves the env as it was.
+    Fields it has are kept."""
     if not isinstance(env, dict):
         return env
-    # Fields added since, with the value that leaves the env as it was.
     env = {**ADDED_SINCE, **env}
     if "controller" in env:
         return env
