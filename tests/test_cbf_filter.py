@@ -340,7 +340,7 @@ def _random_obs(rng, layout, lead):
     return obs
 
 
-def _scene(seed):
+def _obs_scene(seed):
     """(layout, rng, random observations [2, 3, D], gains [2, 3], obs_rows' settings) of a small scene."""
     from aswarm.core.layout import ObsLayout
 
@@ -352,7 +352,7 @@ def _scene(seed):
 
 
 def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree():
-    layout, rng, obs, gain, kw = _scene(8)
+    layout, rng, obs, gain, kw = _obs_scene(8)
     rows_np = barriers.obs_rows(layout, obs, gain, **kw)
     rows_jax = jax.jit(lambda o, g: barriers.obs_rows(layout, o, g, **kw))(jnp.asarray(obs, jnp.float32),
                                                                             jnp.asarray(gain, jnp.float32))
@@ -385,7 +385,7 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
 def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():
     from aswarm.core.layout import CYL, NBR, OWN
 
-    layout, _, obs, gain, kw = _scene(9)
+    layout, _, obs, gain, kw = _obs_scene(9)
     tau_xy, tau_z = 0.34, 0.22
     # The same scene with every position moved to its look-ahead point p + τ v, by hand: the drone to
     # (τ vx, τ vy, z + τ vz), each cylinder by τ v_c, each neighbour by τ v_k, the gates staying where they are.
