@@ -10,6 +10,7 @@ import pytest
 
 from aswarm import envs
 from aswarm.core import geometry as geo
+from aswarm.core.command import limit_change
 from aswarm.envs.dynamics import DroneState, set_drone_state
 from aswarm.envs.randomization import OFF
 
@@ -219,6 +220,25 @@ def test_command_rate_penalty_charges_the_change_of_command():
     np.testing.assert_allclose(np.subtract(rewards[0.0], rewards[0.3]), [0.3 * 1.25, 0.3 * 4.25], rtol=1e-4)
 
 
+def test_command_accel_limit_ramps_the_command_the_drone_receives():
+    # 5 m/s² at 25 Hz: the received command moves at most 0.2 m/s per axis per step from the last one (0 before
+    # the first step); a command within reach arrives as it is.
+    env = envs.make("hover", command_accel_limit=5.0, randomize=OFF)
+    step, s = jax.jit(env.step), env.reset(jax.random.PRNGKey(0))
+    got = []
+    for u in ([2.0, -2.0, 0.1], [2.0, -2.0, 0.1], [0.0, 0.0, 0.0], [0.3, -0.3, 0.05]):
+        s = step(s, jnp.array([u]))
+        got.append(np.asarray(s.onboard.commands[0, 0]))
+    np.testing.assert_allclose(got, [[0.2, -0.2, 0.1], [0.4, -0.4, 0.1], [0.2, -0.2, 0.0], [0.3, -0.3, 0.05]],
+                               atol=1e-6)
+    # The numpy side (the flight runtime's) gives the same numbers.
+    np.testing.assert_allclose(limit_change(np.array([2.0, -2.0, 0.1]), np.array([0.2, -0.2, 0.1]), 0.2),
+                               got[1], atol=1e-7)
+    off = envs.make("hover", randomize=OFF)
+    s = jax.jit(off.step)(off.reset(jax.random.PRNGKey(0)), jnp.array([[2.0, -2.0, 0.1]]))
+    np.testing.assert_array_equal(s.onboard.commands[0, 0], np.float32([2.0, -2.0, 0.1]))
+
+
 def test_cost_rises_inside_the_safety_margin():
     env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, randomize=OFF)
     s = env.reset(jax.random.PRNGKey(0))
@@ -247,6 +267,7 @@ def test_cost_rises_inside_the_safety_margin():
         ("obstacles", {"layout_draws": 0}, r"invalid layout_draws=0: must be >= 1"),
         ("obstacles", {"min_obstacle_gap": -0.1}, r"invalid min_obstacle_gap=-0.1: must be >= 0"),
         ("race", {"command_rate_penalty": -0.5}, r"invalid command_rate_penalty=-0.5: must be >= 0"),
+        ("race", {"command_accel_limit": -3.0}, r"invalid command_accel_limit=-3.0: must be >= 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(name, overrides, message):

@@ -7,6 +7,7 @@ safety filter works on many states; a noisy copy of the rollout adds off-policy 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -416,6 +417,24 @@ def test_random_garbage_never_gives_nan_or_unbounded_commands(synthetic):
         obstacles = fc.Obstacles(pos=rng.uniform(-8, 8, (5, 2)), radius=np.full(5, 0.15),
                                  vel=rng.normal(0, 1, (5, 2)))
         _ok(ctl.step(pos, quat, ts, now=0.02 * k, obstacles=obstacles))
+
+
+def test_command_accel_limit_of_the_bundle_ramps_every_command(synthetic):
+    # The simulator's limit (EnvConfig.command_accel_limit): each command moves at most 5 m/s² / 25 Hz = 0.2 m/s
+    # per axis from the last one sent, towards what the unlimited runtime sends (its estimates and targets do not
+    # depend on what it sent). Poses with gaps make some drones hover: the hover command is ramped too.
+    manifest = {**synthetic.manifest, "env": {**synthetic.env, "command_accel_limit": 5.0}}
+    limited, free = _controller(dataclasses.replace(synthetic, manifest=manifest)), _controller(synthetic)
+    rng = np.random.default_rng(3)
+    last = np.zeros((4, 3))
+    for k in range(40):
+        pos = START + rng.normal(0, 0.3, (4, 3))
+        ts = np.where(rng.uniform(size=4) < 0.1, np.nan, 0.04 * k)
+        want = free.step(pos, Q, ts, now=0.04 * k).velocity
+        got = limited.step(pos, Q, ts, now=0.04 * k).velocity
+        np.testing.assert_allclose(got, last + np.clip(want - last, -0.2, 0.2), atol=1e-12)
+        last = got
+    assert np.abs(want).max() > 0.5  # the runtime asked for more than one step's change
 
 
 def test_a_swarm_that_does_not_match_the_bundle_is_refused(synthetic):

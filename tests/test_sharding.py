@@ -77,8 +77,9 @@ SCALE_RTOL = 2e-3
 
 
 def _env(devices: int) -> dict:
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-               PYTHONPATH=str(ROOT))
+    # XLA_FLAGS: the tests' own (conftest.py) and the number of devices.
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT),
+               XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}")
     # The children share the tests' persistent compilation cache (conftest.py).
     env.update(JAX_COMPILATION_CACHE_DIR=os.path.join(tempfile.gettempdir(), "aswarm-test-jax-cache"),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5")

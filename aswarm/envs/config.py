@@ -84,6 +84,11 @@ class EnvConfig:
     # commands that swing every step made it sink into the floor while commanded up (README, issue #12). Off by
     # default: 0.02 gave 91.5 % and 87.5 % race success in two runs, no penalty 90.4 % (not a measurable gain).
     command_rate_penalty: float = 0.0
+    # m/s², 0 = off: the fastest the velocity command the drone receives may change (per axis), applied to the
+    # filtered command on every policy step (the flight runtime does the same). The firmware's velocity PID
+    # saturates its 20° tilt at 0.8 m/s of velocity error, so a command that jumps further than that in one step
+    # swings the tilt setpoint end to end, the rate loop saturates and the power distribution takes thrust.
+    command_accel_limit: float = 0.0
     # Track progress is measured in the current gate's frame as |along| + lateral_weight * |off the axis|
     # + wrong_side_weight * (depth past the plane, not through the opening). With plain distance to the
     # centre, policies learnt to hover beside or behind the gate (1 drone, 1M steps: no gate passed);
@@ -202,7 +207,7 @@ def validate(c: EnvConfig) -> None:
                  "safety_margin", "track_height"):
         if getattr(c, name) <= 0:
             _fail(name, getattr(c, name), "must be > 0")
-    for name in ("lateral_weight", "wrong_side_weight", "command_rate_penalty"):
+    for name in ("lateral_weight", "wrong_side_weight", "command_rate_penalty", "command_accel_limit"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.start_interval < 0:

@@ -106,6 +106,7 @@ class EnvParams:
     collision_penalty: jax.Array
     time_penalty_per_step: jax.Array  # derived: time_penalty * dt
     command_rate_penalty: jax.Array
+    command_step_limit: jax.Array  # m/s, derived: command_accel_limit / policy_freq
     lateral_weight: jax.Array
     wrong_side_weight: jax.Array
     paper_epsilon: jax.Array
@@ -124,7 +125,8 @@ class EnvParams:
             progress_weight=_f32(cfg.progress_weight), gate_bonus=_f32(cfg.gate_bonus),
             finish_bonus=_f32(cfg.finish_bonus), collision_penalty=_f32(cfg.collision_penalty),
             time_penalty_per_step=_f32(cfg.time_penalty * cfg.dt),
-            command_rate_penalty=_f32(cfg.command_rate_penalty), lateral_weight=_f32(cfg.lateral_weight),
+            command_rate_penalty=_f32(cfg.command_rate_penalty),
+            command_step_limit=_f32(cfg.command_accel_limit / cfg.policy_freq), lateral_weight=_f32(cfg.lateral_weight),
             wrong_side_weight=_f32(cfg.wrong_side_weight), paper_epsilon=_f32(cfg.paper_epsilon),
             moving_amplitude=_f32(cfg.moving_amplitude), moving_omega=_f32(2 * np.pi / cfg.moving_period),
             pid=jax.tree.map(_f32, cfg.pid), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0), mocap_delay=_f32(0.0),

@@ -25,6 +25,7 @@ import numpy as np
 from flax import struct
 
 from aswarm.core import geometry as geo
+from aswarm.core.command import limit_change as limit_command_change
 from aswarm.core.layout import ObsLayout
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
@@ -187,6 +188,8 @@ class SwarmEnv:
         tr0 = state.tracker
         active0 = self.flying(state)
         cmd = jnp.where(active0[:, None], cmd, 0.0)
+        if cfg.command_accel_limit:  # (static, as the rate penalty)
+            cmd = limit_command_change(cmd, state.onboard.commands[0], p.command_step_limit)
         layout = state.layout
         frames = geo.gate_frames(layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
         p0 = drone_state(state.data, n).pos

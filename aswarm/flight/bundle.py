@@ -168,6 +168,11 @@ class Bundle:
         return float(self.env["max_speed"])
 
     @property
+    def command_accel_limit(self) -> float:
+        """m/s², the fastest the sent command may change per axis; 0 (and bundles from before it): no limit."""
+        return float(self.env.get("command_accel_limit", 0.0))
+
+    @property
     def rate_hz(self) -> int:
         return int(self.manifest["control"]["rate_hz"])
 

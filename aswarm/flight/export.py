@@ -68,7 +68,8 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     geo = env.geometry
     env_fields = dict(num_agents=ec.num_agents, num_cylinders=ec.num_cylinders, num_gates=ec.num_gates,
                       max_neighbours=ec.max_neighbours,
-                      max_speed=ec.max_speed, policy_freq=ec.policy_freq, collision_radius=ec.cf.collision_radius,
+                      max_speed=ec.max_speed, command_accel_limit=ec.command_accel_limit, policy_freq=ec.policy_freq,
+                      collision_radius=ec.cf.collision_radius,
                       arena_low=list(ec.arena_low), arena_high=list(ec.arena_high),
                       gate_half_opening=ec.gate_half_opening, gate_bar=ec.gate_bar, goal_radius=ec.goal_radius,
                       episode_seconds=ec.episode_seconds, safety_margin=ec.safety_margin)

@@ -16,6 +16,8 @@ Safety on bad input (never a NaN, never more than ``max_speed`` per axis):
 - a swarm that does not match the bundle (number of drones, gates, more obstacles than the policy
   observes, an unknown scenario kind): ``ValueError`` at construction, reset or step, because
   flying it would be unsafe.
+Where the bundle sets a command acceleration limit (``EnvConfig.command_accel_limit``), every command,
+hover included, moves towards its value no faster than that, as in the simulator.
 A drone asked to land stays landing (zero velocity here; the flight loop hands it to the
 high-level commander) until :meth:`reset`. Every condition is reported once, when it starts, as an
 :class:`Event`; ``StepResult.hover`` and ``land`` give the state at every step.
@@ -27,6 +29,7 @@ import dataclasses
 
 import numpy as np
 
+from aswarm.core.command import limit_change
 from aswarm.core.geometry import gate_crossed, horizontal
 from aswarm.core.observation import observe
 from aswarm.flight import cbf, estimator, policy
@@ -111,6 +114,7 @@ class FlightController:
         self.estimation = estimation
         env = bundle.env
         self.max_speed = bundle.max_speed
+        self._step_limit = bundle.command_accel_limit / bundle.rate_hz  # m/s per control step; 0: no limit
         # The arena as the policy was trained in it: its observation measures the walls of this box.
         self._arena_low, self._arena_high = np.array(env["arena_low"], float), np.array(env["arena_high"], float)
         self.low = np.array(env["arena_low"], float) + safety.geofence_margin
@@ -163,6 +167,7 @@ class FlightController:
         self._target = np.zeros((B, self.n), np.int64)
         self._finished = np.zeros((B, self.n), bool)
         self._landing = np.zeros((B, self.n), bool)
+        self._last_u = np.zeros((B, self.n, 3))  # the last command sent: the acceleration limit's start
         self._obstacles = np.zeros((B, self.num_cylinders, 2))
         self._known = np.zeros((B, self.num_cylinders), bool)
         self._flags = np.zeros((len(EVENT_KINDS), B, self.n), bool)
@@ -252,6 +257,9 @@ class FlightController:
         u = np.where(hover[:, :, None], 0.0, u)
         np.maximum(u, -self.max_speed, out=u)  # np.clip, in place
         np.minimum(u, self.max_speed, out=u)
+        if self._step_limit:  # the simulator's command acceleration limit (EnvConfig.command_accel_limit)
+            u = limit_change(u, self._last_u, self._step_limit)
+            self._last_u = u
 
         # One row per EVENT_KINDS entry, written in place (np.stack of small arrays costs several times more).
         flags = np.empty((len(EVENT_KINDS), B, n), bool)

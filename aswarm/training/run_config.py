@@ -27,7 +27,7 @@ def _legacy_drone() -> dict:
 
 
 # EnvConfig fields added after issue #12, as a stored env without them was.
-ADDED_SINCE = {"command_rate_penalty": 0.0}
+ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0}
 
 
 def with_legacy_drone(env: dict) -> dict:
