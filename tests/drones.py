@@ -7,6 +7,6 @@ its own (test_firmware_pid.py, test_env.py, test_safety_filter_env.py, test_trai
 """
 
 GEOMETRIC = (("controller", "geometric"), ("sim_freq", 250), ("ctrl_freq", 250), ("cf.motor_tau", 0.0),
-             ("randomize.enabled", False))
+             ("randomize.enabled", False), ("command_accel_limit", 0.0))
 # The same as `aswarm train` flags.
 GEOMETRIC_FLAGS = tuple(f"--env={k}={str(v).lower()}" for k, v in GEOMETRIC)

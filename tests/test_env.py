@@ -139,7 +139,8 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
 
 
 def test_staggered_track_start_holds_each_drone_until_its_release_time():
-    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50, randomize=OFF)
+    env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50, randomize=OFF,
+                    command_accel_limit=0.0)  # the climb command at once, not ramped
     s = env.reset(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     start = np.asarray(s.layout.start_pos)
@@ -211,7 +212,7 @@ def test_command_rate_penalty_charges_the_change_of_command():
     cmds = jnp.array([[[1.0, 0.0, 0.5]], [[-1.0, 0.5, 0.5]]])
     rewards = {}
     for w in (0.0, 0.3):
-        env = envs.make("hover", command_rate_penalty=w, randomize=OFF)
+        env = envs.make("hover", command_rate_penalty=w, randomize=OFF, command_accel_limit=0.0)
         step, s = jax.jit(env.step), env.reset(jax.random.PRNGKey(0))
         rewards[w] = []
         for u in cmds:
@@ -234,7 +235,7 @@ def test_command_accel_limit_ramps_the_command_the_drone_receives():
     # The numpy side (the flight runtime's) gives the same numbers.
     np.testing.assert_allclose(limit_change(np.array([2.0, -2.0, 0.1]), np.array([0.2, -0.2, 0.1]), 0.2),
                                got[1], atol=1e-7)
-    off = envs.make("hover", randomize=OFF)
+    off = envs.make("hover", randomize=OFF, command_accel_limit=0.0)
     s = jax.jit(off.step)(off.reset(jax.random.PRNGKey(0)), jnp.array([[2.0, -2.0, 0.1]]))
     np.testing.assert_array_equal(s.onboard.commands[0, 0], np.float32([2.0, -2.0, 0.1]))
 

@@ -13,8 +13,9 @@ from aswarm.envs.params import EnvParams
 from aswarm.envs.wrappers import AutoResetWrapper
 
 STEPS = 8
-# 5 steps an episode: the 8-step rollout crosses an auto-reset, which must keep each world's params.
-BASE = dict(num_agents=2, episode_seconds=0.2)
+# 5 steps an episode: the 8-step rollout crosses an auto-reset, which must keep each world's params. The
+# command steps at once (no acceleration limit), so a changed drone flies measurably differently in 5 steps.
+BASE = dict(num_agents=2, episode_seconds=0.2, command_accel_limit=0.0)
 
 
 def _config(**changes):
