@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import chex
 import jax
@@ -456,13 +457,13 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
            "gain_min": 0.3, "gain_max": 2.0, "penalty_max": 2.0, "margin": 0.1, "drone_radius": 0.06,
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
-    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False)
+    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False, lookahead_scale=1.0)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).
     from aswarm.analysis import evaluate
 
-    train = json.loads((evaluate.PRETRAINED / "config.json").read_text())["train"]
+    train = json.loads((evaluate.PRETRAINED_GEOMETRIC / "config.json").read_text())["train"]
     flat = {k: train[k] for k in LEGACY_FIELDS if k in train} or {"gain_min": 0.3, "gain_max": 2.0,
                                                                   "fixed_gain": 1.5, "filter_margin": 0.1}
     assert nest_legacy(flat) == {"safety_filter": SafetyFilterConfig()}  # it was trained with today's defaults
@@ -480,9 +481,15 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(lookahead_z=-0.1)
     with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
         SafetyFilterConfig(fit_lookahead=1)
-    # Fitted to a drone: gains scaled to its horizontal lag, look-aheads set to its lags (unless asked not to).
+    with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_scale=-1.0: allowed: >= 0"):
+        SafetyFilterConfig(lookahead_scale=-1.0)
+    # Fitted to a drone: gains scaled to its horizontal lag, look-aheads set to 0.9 of its lags (the lags
+    # themselves as runs before the scale; or left alone).
     fitted = SafetyFilterConfig().fitted(0.5, 0.2)
-    assert (fitted.gain_max, fitted.lookahead_xy, fitted.lookahead_z, fitted.fit_to_drone) == (1.0, 0.5, 0.2, False)
+    assert (fitted.gain_max, fitted.fit_to_drone) == (1.0, False)
+    assert math.isclose(fitted.lookahead_xy, 0.45) and math.isclose(fitted.lookahead_z, 0.18)
+    whole = SafetyFilterConfig(lookahead_scale=1.0).fitted(0.5, 0.2)
+    assert (whole.gain_max, whole.lookahead_xy, whole.lookahead_z) == (1.0, 0.5, 0.2)
     assert SafetyFilterConfig(fit_lookahead=False).fitted(0.5, 0.2).lookahead_xy == 0.0
 
 

@@ -1,7 +1,8 @@
-"""The shipped pretrained race policy flies as it did before the shared core (issue #11).
+"""The race policy shipped before the firmware drone flies as it did before the shared core (issue #11).
 
 ``pretrained_eval64.json`` is ``evaluate_checkpoint('pretrained', episodes=64, seed=EVAL_SEED)`` recorded on
-commit d3eaf8b, the code before the refactor. On the machine it was recorded on, the refactored code gives
+commit d3eaf8b, the code before the refactor, when 'pretrained' was this policy (now
+``evaluate.PRETRAINED_GEOMETRIC``; 'pretrained' is the firmware drone's since issue #12). On the machine it was recorded on, the refactored code gives
 those numbers bit for bit (the note of issue #11). Another CPU may sum in another order, and a closed loop
 over 1,000 steps carries a last-bit difference on, so here the counts must match exactly and the means to
 0.2 %: a wrong observation field, barrier row or parameter moves them by far more.
@@ -22,7 +23,7 @@ MEANS = ("mission_time", "min_clearance", "mean_separation", "mean_speed", "epis
 
 def test_pretrained_policy_evaluates_as_recorded_before_the_refactor():
     assert RECORDED["seed"] == EVAL_SEED
-    got = evaluate.evaluate_checkpoint("pretrained", episodes=RECORDED["episodes"], seed=EVAL_SEED)
+    got = evaluate.evaluate_checkpoint(evaluate.PRETRAINED_GEOMETRIC, episodes=RECORDED["episodes"], seed=EVAL_SEED)
     for name in COUNTS:
         assert got[name] == RECORDED[name], name
     for name in MEANS:

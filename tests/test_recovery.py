@@ -150,10 +150,10 @@ def test_checkpoints_without_a_fingerprint_still_load(run, tmp_path):
         meta.write_text(json.dumps(raw))
     assert checkpoint.stored_fingerprint(checkpoint.manager(copy), 6) is None
     chex.assert_trees_all_equal(evaluate.load(copy)[1], evaluate.load(run)[1])
-    # The shipped policy was written before fingerprints existed.
-    mngr = checkpoint.manager(evaluate.PRETRAINED)
+    # The policy shipped before the firmware drone was written before fingerprints existed.
+    mngr = checkpoint.manager(evaluate.PRETRAINED_GEOMETRIC)
     assert checkpoint.stored_fingerprint(mngr, mngr.latest_step()) is None
-    config, restored = evaluate.load("pretrained")
+    config, restored = evaluate.load(evaluate.PRETRAINED_GEOMETRIC)
     assert config.scenario == "race" and int(restored["update"]) == mngr.latest_step()
     # A policy copy keeps the fingerprint.
     small = checkpoint.copy_policy(run, tmp_path / "policy-only")

@@ -279,18 +279,21 @@ def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monke
     (tmp_path / "config.json").write_text(json.dumps(raw))
     with pytest.raises(checkpoint.CheckpointError, match="no 'env' section"):
         checkpoint.load_config(tmp_path)
-    # The shipped policy's folder (env_overrides and an env section) loads its env as stored.
+    # The shipped policies' folders (env_overrides and an env section) load their env as stored.
     from aswarm.analysis import evaluate
 
-    if evaluate.PRETRAINED.exists():
-        shipped = checkpoint.load_config(evaluate.PRETRAINED)
-        stored = json.loads((evaluate.PRETRAINED / "config.json").read_text())["env"]
+    for folder in (evaluate.PRETRAINED, evaluate.PRETRAINED_GEOMETRIC):
+        shipped = checkpoint.load_config(folder)
+        stored = json.loads((folder / "config.json").read_text())["env"]
         loaded = json.loads(json.dumps(dataclasses.asdict(shipped.env)))
         # What it stores is kept; what it predates is the drone it was trained on (envs.config.LEGACY_DRONE).
         assert all(loaded[k] == v if not isinstance(v, dict) else {f: loaded[k][f] for f in v} == v
                    for k, v in stored.items())
         if "controller" not in stored:
             assert shipped.env.controller == "geometric" and not shipped.env.randomize.enabled
+            assert shipped.env.command_accel_limit == 0.0
+    fw = checkpoint.load_config(evaluate.PRETRAINED)
+    assert (fw.env.controller, fw.env.command_accel_limit, fw.safety_filter.lookahead_scale) == ("pid", 3.0, 0.9)
 
 
 def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):

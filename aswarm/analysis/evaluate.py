@@ -27,6 +27,10 @@ from aswarm.envs.collisions import KINDS
 from aswarm.training import checkpoint
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "race"
+# The race policy shipped before the firmware drone (issue #12), trained on the geometric controller: kept as the
+# reference the shared core's refactor was checked against (tests/test_pretrained.py) and as a run folder written
+# before fingerprints, nested filter settings and the firmware drone (the tests of reading old runs).
+PRETRAINED_GEOMETRIC = PRETRAINED.parent / "race-geometric"
 # Reports of the shipped policy go here (relative to the working directory), not into the package.
 PRETRAINED_REPORT_DIR = Path("runs") / "eval"
 COLLISION_KINDS = KINDS[1:]  # obstacle, drone, gate, floor, bounds

@@ -93,12 +93,13 @@ def _train_fields(path: Path, train: dict) -> dict:
     except ValueError as e:
         raise CheckpointError(f"{path} is not a valid aswarm run config: {e}") from e
     # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted; runs from
-    # before fit_lookahead had their gains fitted, not the look-aheads.
+    # before fit_lookahead had their gains fitted, not the look-aheads; runs from before lookahead_scale set the
+    # look-aheads to the lags themselves.
     sf = train.get("safety_filter")
     if sf is None:
         train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False}
     elif isinstance(sf, dict):
-        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, **sf}
+        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_scale": 1.0, **sf}
     elif isinstance(sf, safety.SafetyFilterConfig):  # nest_legacy's, from flat fields: an old run
         train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False, fit_lookahead=False)
     types = config_args.field_types(TrainConfig)
