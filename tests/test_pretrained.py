@@ -2,10 +2,11 @@
 
 ``pretrained_eval64.json`` is ``evaluate_checkpoint('pretrained', episodes=64, seed=EVAL_SEED)`` recorded on
 commit d3eaf8b, the code before the refactor, when 'pretrained' was this policy (now
-``evaluate.PRETRAINED_GEOMETRIC``; 'pretrained' is the firmware drone's since issue #12). On the machine it was recorded on, the refactored code gives
-those numbers bit for bit (the note of issue #11). Another CPU may sum in another order, and a closed loop
-over 1,000 steps carries a last-bit difference on, so here the counts must match exactly and the means to
-0.2 %: a wrong observation field, barrier row or parameter moves them by far more.
+``evaluate.PRETRAINED_GEOMETRIC``; 'pretrained' is the firmware drone's since issue #12). On the machine it
+was recorded on, the refactored code gives those numbers bit for bit (the note of issue #11). Another CPU may
+sum in another order, and a closed loop over 1,000 steps carries a last-bit difference on, so here the counts
+must match exactly and the means to 0.2 %: a wrong observation field, barrier row or parameter moves them by
+far more.
 """
 
 import json
