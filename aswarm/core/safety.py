@@ -33,10 +33,9 @@ class SafetyFilterConfig:
     lookahead_z: float = 0.0
     # With fit_to_drone: set the two look-aheads to lookahead_scale times the drone's measured lags (63 % rise
     # times of a 1 m/s step, horizontal and vertical). The rise time is the exact look-ahead for a first-order lag
-    # only; the firmware drone behind the command acceleration limit follows a command ramp 0.25 s late at most
-    # (its integrators then catch up) plus 0-80 ms of randomised command latency. Race, 1000 episodes of one policy
-    # (runs/race-al3), horizontal look-ahead 0.34 s (scale 1): 97.6 % success, 0.7 % collisions; 0.31 s: 98.9 %,
-    # 0; 0.28 s: 98.8 %, 0; 0.24 s: 97.9 %, 0.2 % (README, issue #12). Runs before the scale used 1.
+    # only; the firmware drone behind the command acceleration limit follows a command ramp at most 0.25 s late
+    # (its integrators then catch up), plus 0-80 ms of randomised command latency, and on the race 0.9 had fewer
+    # gate contacts than 1 (README, "On the firmware drone"). Runs from before the scale read back with 1.
     fit_lookahead: bool = True
     lookahead_scale: float = 0.9
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).

@@ -89,7 +89,7 @@ class EnvConfig:
     # saturates its 20° tilt at 0.8 m/s of velocity error, so a command that jumps further than that in one step
     # swings the tilt setpoint end to end, the rate loop saturates and the power distribution takes thrust: the
     # drone sank into the floor while commanded up. 3 m/s² is under what 20° of tilt gives (3.6 m/s²), so the
-    # drone can follow the command it receives; it took the race from 90.4 to 99.1 % (README, issue #12).
+    # drone can follow the command it receives (measured in the README, "On the firmware drone").
     command_accel_limit: float = 3.0
     # Track progress is measured in the current gate's frame as |along| + lateral_weight * |off the axis|
     # + wrong_side_weight * (depth past the plane, not through the opening). With plain distance to the
