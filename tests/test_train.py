@@ -334,8 +334,9 @@ def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):
 def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
     from aswarm import cli
 
+    # SMALL's sizes: its programs, compiled by the tests above, are in the persistent cache.
     flags = ["--scenario", "hover", "--method", "mappo", "--num-envs", "32", "--rollout-steps", "8",
-             "--updates-per-chunk", "2", "--quiet"]
+             "--minibatches", "2", "--epochs", "2", "--updates-per-chunk", "2", "--quiet"]
     run = tmp_path / "r"
     assert cli.main(["train", *flags, *GEOMETRIC_FLAGS, "--total-steps", str(32 * 8), "--out", str(run)]) == 0
     capsys.readouterr()
