@@ -13,4 +13,3 @@ def limit_change(cmd, previous, step):
     """
     xp = namespace(cmd, previous)
     return previous + xp.clip(cmd - previous, -step, step)
-
