@@ -3,11 +3,12 @@ import tempfile
 
 # Tests run on the CPU whatever the machine has.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# Tests compile many small programs and run each briefly: without LLVM's optimisations XLA:CPU compiles them in
-# about two thirds of the time (a training test: 43 -> 28 CPU-seconds), and the slower code costs less than that
-# (BENCHMARKS.md, "Test suite"). Subprocesses that tests start inherit it. Programs of `aswarm` itself, outside
-# the tests, compile with XLA's defaults.
-TEST_XLA_FLAGS = "--xla_backend_optimization_level=0"
+# Tests compile many small programs and run each briefly, so the suite's time is mostly XLA:CPU compiling. Without
+# LLVM's optimisations it compiles them in about two thirds of the time, and without its newer fusion emitters
+# (the older loop emitters generate far less code) in about half of that again; the slower code costs less than
+# the compile saves (BENCHMARKS.md, "Test suite"). Subprocesses that tests start inherit them. Programs of
+# `aswarm` itself, outside the tests, compile with XLA's defaults.
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):  # (pytest-xdist's workers inherit it)
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 

@@ -100,7 +100,7 @@ def _hover_env(**kw):
 
 def test_env_reports_obstacle_collision_when_flying_into_a_cylinder():
     env = make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     # Put the cylinder 1 m ahead on the drone's path (+x).
     lay = s.layout.replace(cyl_center=jnp.array([[p[0] + 1.0, p[1]]]))
@@ -115,14 +115,14 @@ def test_env_reports_obstacle_collision_when_flying_into_a_cylinder():
 
 def test_env_reports_floor_collision():
     env = _hover_env()
-    prev, s = _fly(env, env.reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.0]]), 200)
+    prev, s = _fly(env, jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.0]]), 200)
     assert int(s.tracker.collision_kind[0]) == col.FLOOR
     assert float(prev.data.qpos[2]) > R > float(s.data.qpos[2])
 
 
 def test_env_reports_drone_collision():
     env = make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     sep = float(jnp.linalg.norm(s.layout.start_pos[0] - s.layout.start_pos[1]))
     prev, s = _fly(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), 200)
     assert np.asarray(s.tracker.collision_kind).tolist() == [col.DRONE, col.DRONE]

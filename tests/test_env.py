@@ -57,7 +57,8 @@ def test_same_key_same_layout_different_keys_differ(race):
 
 def test_nominal_layout_without_jitter_is_fixed_up_to_slot_choice():
     env = envs.make("race", layout_jitter=0.0)
-    a, b = env.reset(jax.random.PRNGKey(0)), env.reset(jax.random.PRNGKey(1))
+    reset = jax.jit(env.reset)
+    a, b = reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(1))
     np.testing.assert_allclose(a.layout.gate_pos, b.layout.gate_pos)
     np.testing.assert_allclose(a.layout.start_pos, b.layout.start_pos)
 
@@ -78,7 +79,7 @@ def test_jit_vmap_scan_match_plain_call(race):
 def test_vmapped_autoreset_rollout_in_scan():
     env = envs.make("hover", episode_seconds=0.2)  # 10 steps per episode
     wenv = envs.wrap_for_training(env, 3)
-    s = wenv.reset(jax.random.PRNGKey(0))
+    s = jax.jit(wenv.reset)(jax.random.PRNGKey(0))
     chex.assert_shape(s.obs, (3, 1, env.observation_size))
 
     def body(s, _):
@@ -94,7 +95,7 @@ def test_vmapped_autoreset_rollout_in_scan():
 
 def test_race_gate_passage_advances_target_and_pays_bonus():
     env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
     start = DroneState(pos=(g - 0.3 * normal)[None], quat=jnp.array([[1.0, 0, 0, 0]]), vel=(normal * 1.0)[None],
@@ -122,7 +123,7 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
 
 def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
     env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
     side = jnp.array([-jnp.sin(yaw), jnp.cos(yaw), 0.0])
@@ -133,7 +134,7 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
     np.testing.assert_allclose(env._to_go(pos, s.layout, jnp.zeros(3, jnp.int32)),
                                [0.5, 0.5 + w * 0.5, 0.2 + w * 0.2 + k * 0.5], rtol=1e-5)
     goals = envs.make("obstacles")
-    sg = goals.reset(jax.random.PRNGKey(0))
+    sg = jax.jit(goals.reset)(jax.random.PRNGKey(0))
     p = sg.layout.waypoints[:, 0] + jnp.array([0.0, 0.0, 0.7])
     np.testing.assert_allclose(goals._to_go(p, sg.layout, jnp.zeros(4, jnp.int32)), 0.7, rtol=1e-5)
 
@@ -141,7 +142,7 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
 def test_staggered_track_start_holds_each_drone_until_its_release_time():
     env = envs.make("race", num_agents=3, num_obstacles=0, start_interval=0.1, policy_freq=50, randomize=OFF,
                     command_accel_limit=0.0)  # the climb command at once, not ramped
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     start = np.asarray(s.layout.start_pos)
     cmd = jnp.tile(jnp.array([0.0, 0.0, 1.0]), (3, 1))
@@ -179,7 +180,7 @@ def test_layouts_leave_every_gap_between_cylinders_wide_enough_for_the_filter():
 
 def test_reaching_the_goal_finishes_with_success_metrics():
     env = envs.make("hover", layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     while not bool(s.done):
         s = step(s, jnp.clip(-2.0 * s.obs[:, :3], -1.0, 1.0))  # fly at the goal
@@ -193,7 +194,7 @@ def test_reaching_the_goal_finishes_with_success_metrics():
 @pytest.mark.parametrize("n", [1, 16])
 def test_number_of_drones_is_configurable(n):
     env = envs.make("race", num_agents=n)
-    s = jax.jit(env.step)(env.reset(jax.random.PRNGKey(0)), jnp.zeros((n, 3)))
+    s = jax.jit(env.step)(jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.zeros((n, 3)))
     chex.assert_shape(s.obs, (n, env.observation_size))
     assert not bool(s.done)
 
@@ -201,7 +202,7 @@ def test_number_of_drones_is_configurable(n):
 def test_paper_reward_is_inverse_distance(race):
     # Every drone flying from the first step; observations without motion-capture noise.
     env = envs.make("race", reward="paper", start_interval=0.0, randomize=OFF)
-    s = env.step(env.reset(jax.random.PRNGKey(0)), jnp.zeros((4, 3)))
+    s = jax.jit(env.step)(jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.zeros((4, 3)))
     d = jnp.linalg.norm(s.obs[:, :3], axis=-1)
     np.testing.assert_allclose(s.reward, 1 / (d + 0.001), rtol=1e-4)
 
@@ -213,7 +214,7 @@ def test_command_rate_penalty_charges_the_change_of_command():
     rewards = {}
     for w in (0.0, 0.3):
         env = envs.make("hover", command_rate_penalty=w, randomize=OFF, command_accel_limit=0.0)
-        step, s = jax.jit(env.step), env.reset(jax.random.PRNGKey(0))
+        step, s = jax.jit(env.step), jax.jit(env.reset)(jax.random.PRNGKey(0))
         rewards[w] = []
         for u in cmds:
             s = step(s, u)
@@ -225,7 +226,7 @@ def test_command_accel_limit_ramps_the_command_the_drone_receives():
     # 5 m/s² at 25 Hz: the received command moves at most 0.2 m/s per axis per step from the last one (0 before
     # the first step); a command within reach arrives as it is.
     env = envs.make("hover", command_accel_limit=5.0, randomize=OFF)
-    step, s = jax.jit(env.step), env.reset(jax.random.PRNGKey(0))
+    step, s = jax.jit(env.step), jax.jit(env.reset)(jax.random.PRNGKey(0))
     got = []
     for u in ([2.0, -2.0, 0.1], [2.0, -2.0, 0.1], [0.0, 0.0, 0.0], [0.3, -0.3, 0.05]):
         s = step(s, jnp.array([u]))
@@ -236,18 +237,18 @@ def test_command_accel_limit_ramps_the_command_the_drone_receives():
     np.testing.assert_allclose(limit_change(np.array([2.0, -2.0, 0.1]), np.array([0.2, -0.2, 0.1]), 0.2),
                                got[1], atol=1e-7)
     off = envs.make("hover", randomize=OFF, command_accel_limit=0.0)
-    s = jax.jit(off.step)(off.reset(jax.random.PRNGKey(0)), jnp.array([[2.0, -2.0, 0.1]]))
+    s = jax.jit(off.step)(jax.jit(off.reset)(jax.random.PRNGKey(0)), jnp.array([[2.0, -2.0, 0.1]]))
     np.testing.assert_array_equal(s.onboard.commands[0, 0], np.float32([2.0, -2.0, 0.1]))
 
 
 def test_cost_rises_inside_the_safety_margin():
     env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, randomize=OFF)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     gap = 0.05  # inside the 0.15 m margin, outside collision
     x = p[0] + gap + env.config.obstacle_radius + env.config.cf.collision_radius
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[x, p[1]]])))
-    s = env.step(s, jnp.zeros((1, 3)))
+    s = jax.jit(env.step)(s, jnp.zeros((1, 3)))
     assert 0.5 < float(s.cost[0]) < 0.8 and not bool(s.tracker.collided[0])
 
 
@@ -277,7 +278,7 @@ def test_bad_config_is_a_clear_error(name, overrides, message):
 
 
 def test_bad_actions_are_clear_errors(race):
-    s = race.reset(jax.random.PRNGKey(0))
+    s = jax.jit(race.reset)(jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match=r"action has shape \(4,\): allowed shape is \(4, 3\)"):
         race.step(s, jnp.zeros(4))
     with pytest.raises(ValueError, match=r"action has shape \(4, 2\)"):

@@ -134,8 +134,8 @@ def test_pid_drone_tracks_velocity_steps(pid_drone):
 def test_randomised_parameters_differ_across_worlds_and_repeat_from_the_key():
     env = envs.make("hover", randomize=Randomization(mocap_delay=(0, 1)))
     keys = jax.random.split(jax.random.PRNGKey(3), 64)
-    a = jax.vmap(env.reset)(keys).onboard.params
-    b = jax.vmap(env.reset)(keys).onboard.params
+    a = jax.jit(jax.vmap(env.reset))(keys).onboard.params
+    b = jax.jit(jax.vmap(env.reset))(keys).onboard.params
     for leaf_a, leaf_b in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(leaf_a, leaf_b)
     r = env.config.randomize

@@ -188,15 +188,15 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
 
     n = 5
     env = envs.make("race", num_agents=n, max_neighbours=k)
-    s = env.reset(jax.random.PRNGKey(1))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(1))
     rng = np.random.default_rng(0)
     pos = rng.uniform(-1.5, 1.5, (n, 3)) + [0.0, 0.0, 1.6]
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
     vel, ang = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
     finished = np.array([False, True, False, False, False])  # drone 1 is no neighbour
     tr = s.tracker.replace(finished=jnp.asarray(finished))
-    want = env._observe(DroneState(*(jnp.asarray(x, jnp.float32) for x in (pos, quat, vel, ang))), s.layout, tr,
-                        jnp.zeros(()))
+    drones = DroneState(*(jnp.asarray(x, jnp.float32) for x in (pos, quat, vel, ang)))
+    want = jax.jit(env._observe)(drones, s.layout, tr, jnp.zeros(()))
     lay = jax.tree.map(np.asarray, s.layout)
     normals = np.broadcast_to(geometry.horizontal(lay.gate_yaw)[None], lay.waypoints.shape)
     got = observation.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,

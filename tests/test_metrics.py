@@ -33,7 +33,7 @@ def step(env):
 @pytest.fixture(scope="module")
 def base(env):
     """The reset state with every cylinder removed."""
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     return s.replace(layout=s.layout.replace(cyl_present=jnp.zeros_like(s.layout.cyl_present)))
 
 

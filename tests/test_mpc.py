@@ -19,13 +19,13 @@ STEPS = 150  # 3 s: the 2.75 m flight takes ~2 s
 def _one_cylinder_in_the_way():
     """One drone at (-4, 0, 1), its goal at (-1.25, 0, 1) and one cylinder halfway, on the straight line."""
     env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, episode_seconds=STEPS / 50)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     start = np.asarray(s.layout.start_pos[0])
     goal = start + np.array([2.75, 0.0, 0.0])
     centre = (start[:2] + goal[:2]) / 2
     layout = s.layout.replace(waypoints=jnp.asarray(goal, jnp.float32)[None, None],
                               cyl_center=jnp.asarray(centre, jnp.float32)[None])
-    s = s.replace(layout=layout, obs=env._observe(drone_state(s.data, 1), layout, s.tracker, s.data.time))
+    s = s.replace(layout=layout, obs=jax.jit(env._observe)(drone_state(s.data, 1), layout, s.tracker, s.data.time))
     # The cylinder blocks the straight line: its surface is within the drone's radius of the line.
     assert np.linalg.norm(np.cross(np.append(centre - start[:2], 0), np.append(goal[:2] - start[:2], 0))) < 1e-6
     assert 1.0 < np.linalg.norm(centre - start[:2]) < np.linalg.norm(goal[:2] - start[:2]) - 1.0

@@ -18,8 +18,8 @@ def _agent(**kw):
 def test_shapes_and_attention_weights_sum_to_one():
     agent = _agent()
     env = agent.env
-    params = agent.init_params(jax.random.PRNGKey(0))
-    obs = env.reset(jax.random.PRNGKey(1)).obs
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(0))
+    obs = jax.jit(env.reset)(jax.random.PRNGKey(1)).obs
     nobs = obs  # normalization is the identity for these checks
     theta, alpha = agent.cbf.apply(params["cbf"], nobs, hazard_mask(env.obs_layout, obs))
     n, h = env.num_agents, env.config.num_cylinders + env.num_agents - 1
@@ -37,8 +37,8 @@ def test_attention_is_permutation_equivariant_in_obstacles():
     agent = _agent()
     env = agent.env
     lay = env.obs_layout
-    params = agent.init_params(jax.random.PRNGKey(0))
-    obs = env.reset(jax.random.PRNGKey(2)).obs
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(0))
+    obs = jax.jit(env.reset)(jax.random.PRNGKey(2)).obs
     own, cyl, nbr = lay.split(obs)
     perm = np.random.default_rng(0).permutation(lay.num_cylinders)
     obs_p = jnp.concatenate([own, cyl[:, perm].reshape(obs.shape[0], -1), nbr.reshape(obs.shape[0], -1)], -1)
@@ -51,9 +51,10 @@ def test_attention_is_permutation_equivariant_in_obstacles():
 def test_absent_obstacles_get_zero_weight():
     env = envs.make("dynamic", min_moving=1)
     agent = Agent.build(TrainConfig(scenario="dynamic"), env)
-    params = agent.init_params(jax.random.PRNGKey(0))
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(0))
+    reset = jax.jit(env.reset)
     for seed in range(5):
-        obs = env.reset(jax.random.PRNGKey(seed)).obs
+        obs = reset(jax.random.PRNGKey(seed)).obs
         mask = hazard_mask(env.obs_layout, obs)
         _, alpha = agent.cbf.apply(params["cbf"], obs, mask)
         assert float(jnp.max(jnp.where(mask, 0.0, alpha))) == 0.0
@@ -63,14 +64,14 @@ def test_absent_obstacles_get_zero_weight():
 def test_no_hazards_gives_zero_context_not_nan():
     env = envs.make("hover")
     agent = Agent.build(TrainConfig(scenario="hover"), env)
-    params = agent.init_params(jax.random.PRNGKey(0))
-    obs = env.reset(jax.random.PRNGKey(0)).obs
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(0))
+    obs = jax.jit(env.reset)(jax.random.PRNGKey(0)).obs
     theta, alpha = agent.cbf.apply(params["cbf"], obs, hazard_mask(env.obs_layout, obs))
     assert alpha.shape == (1, 0) and np.isfinite(np.asarray(theta)).all()
 
 
 def test_paper_sizes_are_one_flag_away():
     agent = _agent(cbf_hidden=(1024, 256), cbf_embed=3)
-    params = agent.init_params(jax.random.PRNGKey(0))
+    params = jax.eval_shape(agent.init_params, jax.random.PRNGKey(0))
     kernels = [x.shape for x in jax.tree.leaves(params["cbf"]) if x.ndim == 2]
     assert (1024, 256) in kernels and any(k[1] == 3 for k in kernels)

@@ -85,14 +85,14 @@ def test_default_params_are_the_configs_and_reset_without_params_uses_them(swept
     assert jax.eval_shape(env.reset, keys[0]).params is None
     # VmapWrapper: one params for every world, or one per world.
     wenv = envs.VmapWrapper(env)
-    np.testing.assert_array_equal(wenv.reset(keys, p).params.cf.mass, np.full(len(WORLDS), p.cf.mass))
+    np.testing.assert_array_equal(jax.jit(wenv.reset)(keys, p).params.cf.mass, np.full(len(WORLDS), p.cf.mass))
 
 
 def test_moving_obstacles_take_the_params_motion():
     cfg = envs.registry.preset("dynamic", num_moving=1, min_moving=1)
     env = envs.SwarmEnv(cfg)
     other = dataclasses.replace(cfg, moving_amplitude=0.5, moving_period=2.0)
-    lay = jax.vmap(env.reset)(jnp.stack([jax.random.PRNGKey(1)] * 2),
+    lay = jax.jit(jax.vmap(env.reset))(jnp.stack([jax.random.PRNGKey(1)] * 2),
                               env_params.stack([env.default_params, EnvParams.from_config(other)])).layout
     moving = ~(np.arange(cfg.num_cylinders) < cfg.num_obstacles)
     np.testing.assert_allclose(lay.cyl_amplitude[:, moving], [[0.8], [0.5]])

@@ -31,7 +31,7 @@ def png_size(path) -> tuple[int, int]:
 @pytest.fixture(scope="module")
 def policy():
     agent = Agent.build(TrainConfig(scenario="race", env_overrides=SHORT))
-    params = agent.init_params(jax.random.PRNGKey(0))
+    params = jax.jit(agent.init_params)(jax.random.PRNGKey(0))
     obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((agent.env.observation_size,), jnp.float32))
     return agent, params, obs_norm
 

@@ -57,13 +57,13 @@ def _place(env, state, pos):
     drones = DroneState(pos=jnp.asarray([pos]), quat=jnp.array([[1.0, 0.0, 0.0, 0.0]]), vel=jnp.zeros((1, 3)),
                         ang_vel=jnp.zeros((1, 3)))
     return state.replace(data=set_drone_state(state.data, drones),
-                         obs=env._observe(drones, state.layout, state.tracker, jnp.zeros(())))
+                         obs=jax.jit(env._observe)(drones, state.layout, state.tracker, jnp.zeros(())))
 
 
 def _gate_approach(lateral: float):
     """One drone 1.2 m before gate 0 on its axis, shifted sideways by ``lateral``, and the command along the axis."""
     env = _make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
     side = jnp.array([-jnp.sin(yaw), jnp.cos(yaw), 0.0])
@@ -119,7 +119,7 @@ def test_turning_into_the_gate_just_passed_is_stopped_only_with_the_filter(use_f
 @pytest.mark.parametrize("use_filter", [True, False])
 def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_filter):
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.0, p[1]]])))
     s = _run(env, s, jnp.array([[1.5, 0.0, 0.0]]), use_filter)
@@ -136,7 +136,7 @@ def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_fil
 def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direction, use_filter):
     env = _make("obstacles", num_agents=1, num_obstacles=0, layout_jitter=0.0)
     c = env.config
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     d = np.asarray(direction) / 1.5
     # 1.2 m from the wall (or the ceiling) the command points at.
     centre = (np.asarray(c.arena_low) + np.asarray(c.arena_high)) / 2
@@ -154,7 +154,7 @@ def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direct
 
 def test_two_drones_flying_head_on_keep_apart_with_the_filter():
     env = _make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     s = _run(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), True, seconds=2.4)
     assert not bool(jnp.any(s.tracker.collided))
     assert float(jnp.linalg.norm(s.data.qpos[:3] - s.data.qpos[7:10])) > 2 * env.config.cf.collision_radius
@@ -162,7 +162,7 @@ def test_two_drones_flying_head_on_keep_apart_with_the_filter():
 
 def test_descending_into_the_floor_is_stopped():
     env = _make("hover", layout_jitter=0.0)
-    s = _run(env, env.reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
+    s = _run(env, jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
     assert not bool(s.tracker.collided[0])
     assert not bool(s.tracker.finished[0])  # still flying, not a goal reached on the way down
     assert float(s.data.qpos[2]) > env.config.cf.collision_radius
@@ -173,7 +173,7 @@ def test_largest_default_gain_is_safe_at_full_speed():
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     cfg = _fitted(env)
     assert TrainConfig().safety_filter.fitted(*_lags(env.config)) == cfg
-    s = env.reset(jax.random.PRNGKey(0))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))
     s = _run(env, s, jnp.array([[env.config.max_speed, 0.0, 0.0]]), True, gain=cfg.gain_max,

@@ -241,7 +241,7 @@ def test_target_critics_follow_the_critics_by_soft_updates():
     chex.assert_trees_all_close(ts1.target, want, rtol=1e-6, atol=1e-7)
     assert not np.allclose(ts1.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"],
                            ts.params["critic"]["params"]["MLP_0"]["Dense_0"]["kernel"])
-    assert make_train(TrainConfig(method="mappo", **SMALL))[1](jax.random.PRNGKey(0)).target == {}
+    assert jax.eval_shape(make_train(TrainConfig(method="mappo", **SMALL))[1], jax.random.PRNGKey(0)).target == {}
 
 
 def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monkeypatch):

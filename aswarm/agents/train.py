@@ -212,9 +212,12 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
         optimizer = make_optimizer(config, hparams.resolve(config, values))
         target = {k: params[k] for k in ("critic", "cost_critic")} if config.target_tau > 0 else {}
-        return TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
-                          env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
-                          env_steps=jnp.zeros((), jnp.float32), hparams=values, target=target)
+        ts = TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
+                        env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
+                        env_steps=jnp.zeros((), jnp.float32), hparams=values, target=target)
+        # Strongly typed leaves only: a state restored from a checkpoint (numpy, never weakly typed) then has a
+        # fresh one's types, and a resumed run reuses the compiled update instead of compiling a second one.
+        return jax.tree.map(lambda x: jnp.asarray(x).astype(jnp.asarray(x).dtype), ts)
 
     def rollout(ts: TrainState, key: jax.Array):
         h = hparams.resolve(config, ts.hparams)
