@@ -88,8 +88,8 @@ def test_tiny_sweep_resumes_and_equals_trials_run_one_by_one(tmp_path):
                 # hyperparameter routed to the wrong trial moves them by 1e-1). Seen at XLA's default optimisation
                 # level: cost excess 1.3e-5 apart on a curve reaching 0.47, explained variance (1 - var(residual)
                 # / var(target), which magnifies it where the target barely varies) 3.5e-4 on one reaching 1.17;
-                # at level 0, which the tests compile at (conftest.py): cost excess 1.8e-4 on 0.38, loss 4.2e-5 on
-                # 0.2.
+                # at level 0: cost excess 1.8e-4 on 0.38, loss 4.2e-5 on 0.2 (the tests compile at level 0 without
+                # the fusion emitters, conftest.py).
                 assert_same_curve([r[name] for r in rows], np.asarray(values), 1e-3, f"{run.name} {name}")
             # What `aswarm eval --checkpoint` reads: the trial's own config and policy.
             trained, restored = evaluate.load(run)
