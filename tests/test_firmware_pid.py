@@ -156,7 +156,36 @@ def test_latency_delays_the_command_by_whole_controller_ticks():
     assert got == [2.0, 2.0, 1.0, 1.0]  # 6 ticks late: ticks 0-1 hold the command of 2 steps ago
 
 
+def test_seen_velocity_is_the_flight_runtimes_estimate_from_the_noisy_positions():
+    from aswarm.flight import estimator
+
+    # 3 mm of noise in every episode, no delay: what the policy sees is the line through the last 4 noisy
+    # positions at the policy rate, as the flight runtime fits it to the poses motion capture gives it.
+    r = Randomization(mocap_noise=(0.003, 0.003), velocity_window=4)
+    env = envs.make("hover", randomize=r)
+    step, s = jax.jit(env.step), jax.jit(env.reset)(jax.random.PRNGKey(0))
+    vel = env.obs_layout.own_slices["vel"]
+    est = estimator.init((1,), estimator.EstimatorConfig(window=4))
+    for k in range(8):
+        if k:
+            s = step(s, jnp.array([[0.8, -0.4, 0.3]]))
+        seen = np.asarray(s.onboard.pos_history[0], np.float64)  # the noisy position the policy saw
+        est, _, _ = estimator.update(est, np.full(1, k / env.config.policy_freq), seen, np.array([[1.0, 0, 0, 0]]),
+                                     np.ones(1, bool))
+        if k >= 3:  # a full window (the env starts its window at the true start position)
+            want, _ = estimator.estimate(est)
+            np.testing.assert_allclose(s.obs[0, vel], want[0], atol=2e-4, err_msg=f"step {k}")
+    # The noise is in it: 3 mm over 4 poses at 25 Hz moves the slope by centimetres per second.
+    true = np.asarray(s.data.qvel[:3])
+    assert 1e-3 < np.abs(np.asarray(s.obs[0, vel]) - true).max() < 0.5
+    # Without the window, the true velocity.
+    plain = envs.make("hover", randomize=Randomization(mocap_noise=(0.003, 0.003)))
+    s = jax.jit(plain.reset)(jax.random.PRNGKey(0))
+    assert s.onboard.pos_history is None
+
+
 @pytest.mark.parametrize("field, value, message", [
+    ("velocity_window", 1, r"invalid randomize.velocity_window=1: allowed: 0 \(true velocities\) or an integer >= 2"),
     ("mass", (-0.1, 1.1), r"invalid randomize.mass=\(-0.1, 1.1\): allowed: scales > 0"),
     ("mass", (1.2, 0.8), r"invalid randomize.mass=\(1.2, 0.8\): allowed: finite numbers with low <= high"),
     ("latency", (-1.0, 2.0), r"invalid randomize.latency=\(-1.0, 2.0\): allowed: values >= 0"),

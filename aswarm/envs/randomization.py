@@ -7,7 +7,8 @@ constant (more or less thrust at the speed the firmware commands), the yaw-torqu
 constant and every gain of the onboard controller (one factor per world). Latency delays the velocity command
 by whole onboard-controller ticks (``1 / ctrl_freq``, 10 ms at the firmware's 100 Hz); its range is in policy
 steps. Motion capture adds Gaussian noise (standard deviation drawn per episode, in metres) to every position
-the policy and its filter see, and can hand over poses whole policy steps old.
+the policy and its filter see, and can hand over poses whole policy steps old; with ``velocity_window`` the
+velocities they see are estimated from those noisy positions as the flight runtime estimates them.
 """
 
 from __future__ import annotations
@@ -32,12 +33,21 @@ class Randomization:
     # Policy steps. Off by default: the command latency above already spans 0-80 ms of loop delay, and the two
     # together (up to 120 ms) cost the race policy its success (README, issue #12).
     mocap_delay: tuple[int, int] = (0, 0)
+    # Poses (>= 2) of the least-squares line the policy's velocities are fitted to, from the noisy positions at
+    # the policy rate, as the flight runtime estimates them (its default window is 4); 0: the true velocities.
+    velocity_window: int = 0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             if f.name == "enabled":
                 if not isinstance(self.enabled, bool):
                     raise ValueError(f"invalid randomize.enabled={self.enabled!r}: allowed: true or false")
+                continue
+            if f.name == "velocity_window":
+                w = self.velocity_window
+                if isinstance(w, bool) or not isinstance(w, int) or w == 1 or w < 0:
+                    raise ValueError(f"invalid randomize.velocity_window={w!r}: allowed: 0 (true velocities) or "
+                                     "an integer >= 2")
                 continue
             v = getattr(self, f.name)
             name = f"randomize.{f.name}"
@@ -59,6 +69,11 @@ class Randomization:
     def max_delay(self) -> int:
         """Policy steps of observations the env keeps (the compiled shape)."""
         return int(self.mocap_delay[1]) if self.enabled else 0
+
+    @property
+    def velocity_samples(self) -> int:
+        """Noisy positions the env keeps for the velocity estimate (the compiled shape); 0: none."""
+        return self.velocity_window if self.enabled else 0
 
     @property
     def max_latency(self) -> float:

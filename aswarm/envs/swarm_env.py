@@ -26,6 +26,7 @@ from flax import struct
 
 from aswarm.core import geometry as geo
 from aswarm.core.command import limit_change as limit_command_change
+from aswarm.core.estimation import slope_weights
 from aswarm.core.layout import ObsLayout
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
@@ -67,6 +68,9 @@ class Onboard:
     obs_history: jax.Array  # [max_delay, n, obs_dim] the policy's last observations, the newest first
     key: jax.Array  # draws the motion-capture noise of each step
     params: EnvParams | None  # this episode's draw (domain randomisation); None where nothing is drawn
+    # [velocity_window, n, 3] the noisy positions the seen velocities are fitted to, the newest first; None
+    # where the policy sees the true velocities
+    pos_history: jax.Array | None = None
 
 
 @struct.dataclass
@@ -112,6 +116,10 @@ class SwarmEnv:
         self.ticks = config.substeps // config.ctrl_every  # onboard-controller ticks per policy step
         # The rotor speed the firmware's thrust map commands, per sqrt(thrust): the nominal drone's kf.
         self._kf_nominal = float(config.cf.kf)
+        # The velocity estimate's weights over the last W noisy positions, the newest first (core.estimation).
+        w = config.randomize.velocity_samples
+        self._velocity_weights = (jnp.asarray(slope_weights(-np.arange(w, dtype=np.float64) / config.policy_freq),
+                                              jnp.float32) if w else None)
 
     # Sizes, as MuJoCo Playground names them.
     @property
@@ -167,9 +175,12 @@ class SwarmEnv:
             hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
             pid = firmware_pid.initial_state(drones.quat, drones.ang_vel, hover, p.pid)
         obs = self._observe(drones, layout, tracker, jnp.zeros(()))
+        w = self._velocity_weights
+        history = None if w is None else jnp.broadcast_to(drones.pos, (w.shape[0],) + drones.pos.shape)
         onboard = Onboard(pid=pid, rpm=jnp.broadcast_to(hover_rpm, (n, 4)), commands=jnp.zeros((2, n, 3)),
                           obs_history=jnp.broadcast_to(obs, (cfg.randomize.max_delay,) + obs.shape),
-                          key=jax.random.fold_in(key, 2), params=drawn)
+                          key=jax.random.fold_in(key, 2), params=drawn,
+                          pos_history=history)
         seen, onboard = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)
         state = State(data=data, obs=seen, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
                       done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
@@ -297,8 +308,12 @@ class SwarmEnv:
         if not self.randomize:
             return obs, ob
         key, k = jax.random.split(ob.key)
-        noise = p.mocap_noise * jax.random.normal(k, drones.pos.shape)
-        fresh = self._observe(drones.replace(pos=drones.pos + noise), layout, tr, t)
+        sensed = drones.replace(pos=drones.pos + p.mocap_noise * jax.random.normal(k, drones.pos.shape))
+        if self._velocity_weights is not None:
+            history = jnp.concatenate([sensed.pos[None], ob.pos_history[:-1]])
+            sensed = sensed.replace(vel=jnp.tensordot(self._velocity_weights, history, axes=1))
+            ob = ob.replace(pos_history=history)
+        fresh = self._observe(sensed, layout, tr, t)
         seen = jnp.concatenate([fresh[None], ob.obs_history])  # [k]: the observation of k steps ago
         delayed = seen[jnp.minimum(p.mocap_delay, ob.obs_history.shape[0]).astype(jnp.int32)]
         return delayed, ob.replace(obs_history=seen[:ob.obs_history.shape[0]], key=key)

@@ -23,6 +23,8 @@ import dataclasses
 
 import numpy as np
 
+from aswarm.core.estimation import slope_weights
+
 
 @dataclasses.dataclass(frozen=True)
 class EstimatorConfig:
@@ -115,13 +117,11 @@ def update(state: EstimatorState, t: np.ndarray, pos: np.ndarray, quat: np.ndarr
 def _slope(t: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
     """Weighted least-squares slope of y [..., W, k] against t [..., W] (weights w [..., W] in {0, 1}, None: all 1)."""
     # Times relative to the newest sample (no large offsets); unfilled slots hold -inf and weight 0.
-    if w is None:  # full windows, the steady state: the same numbers without the weights
-        tc = t - t[..., -1:]
-        dt = tc - tc.sum(-1, keepdims=True) / t.shape[-1]
-    else:
-        sw = np.maximum(w.sum(-1, keepdims=True), 1.0)
-        tc = np.subtract(t, t[..., -1:], out=np.zeros(t.shape), where=w > 0)
-        dt = (tc - (w * tc).sum(-1, keepdims=True) / sw) * w
+    if w is None:  # full windows, the steady state: the line the simulator fits too (core.estimation)
+        return (slope_weights(t - t[..., -1:])[..., None, :] @ y)[..., 0, :]
+    sw = np.maximum(w.sum(-1, keepdims=True), 1.0)
+    tc = np.subtract(t, t[..., -1:], out=np.zeros(t.shape), where=w > 0)
+    dt = (tc - (w * tc).sum(-1, keepdims=True) / sw) * w
     den = (dt * dt).sum(-1, keepdims=True)
     # Σ dt_i (y_i − ȳ) = Σ dt_i y_i since Σ dt_i = 0.
     num = (dt[..., None, :] @ y)[..., 0, :]
