@@ -123,11 +123,12 @@ def cmd_sitl(args: argparse.Namespace) -> int:
     import json
 
     from aswarm.flight import sitl
+    from aswarm.flight.estimator import EstimatorConfig
 
     result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
                            noise=args.noise, latency_ms=args.latency, mass_scale=args.mass_scale,
                            thrust_scale=args.thrust_scale, env_overrides=args.env or [],
-                           progress=not args.json)
+                           estimation=EstimatorConfig(window=args.estimator_window), progress=not args.json)
     print(json.dumps(result) if args.json else sitl.format_table(result))
     return 0
 
@@ -201,6 +202,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="aswarm", description=__doc__)
+    from aswarm.flight.estimator import EstimatorConfig
+
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("scenarios", help="list the scenarios with their drones, obstacles and gates")
@@ -274,6 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("--thrust-scale", type=float, default=1.0,
                     help="the simulated drone's thrust constant over the nominal (what the controller assumes)")
     si.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
+    si.add_argument("--estimator-window", type=int, default=EstimatorConfig.window, metavar="POSES",
+                    help="poses in the runtime's least-squares velocity fit (default %(default)s)")
     si.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     si.set_defaults(func=cmd_sitl)
 
