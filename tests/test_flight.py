@@ -280,6 +280,19 @@ def test_sitl_with_noise_and_latency_and_its_cli(race, capsys):
         sitl.run_sitl(race.path, episodes=B, env_overrides=["num_agents=3"])
 
 
+def test_sitl_flies_a_bundle_exported_before_a_field_was_added(race, tmp_path):
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(race.path, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    del manifest["source"]["env_config"]["randomize"]["velocity_window"]  # added in issue #12's fifth session
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    a, b = (sitl.run_sitl(p, episodes=B, seed=SEED) for p in (race.path, old))
+    assert (a["success_rate"], a["collision_rate"], a["progress"]) == (b["success_rate"], b["collision_rate"],
+                                                                       b["progress"])
+
+
 # ------------------------------------------------------------------ estimator
 def _qexp(r):
     a = np.linalg.norm(r)

@@ -92,7 +92,10 @@ def make_env(bundle: Bundle, scenario: str | None = None, env_overrides: list[st
         config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
     stored = bundle.manifest.get("source", {}).get("env_config")
     if stored is not None and scenario in (None, bundle.scenario):
-        base = config_args.from_dict(envs.EnvConfig, stored, "bundle source.env_config", require_all=True)
+        from aswarm.training.run_config import with_legacy_drone  # fields added since: as the bundle's env was
+
+        base = config_args.from_dict(envs.EnvConfig, with_legacy_drone(stored), "bundle source.env_config",
+                                     require_all=True)
         env = envs.SwarmEnv(config_args.replace_fields(base, extra))
     else:
         env = envs.SwarmEnv(config_args.replace_fields(registry.preset(scenario or bundle.scenario),

@@ -26,8 +26,8 @@ def _legacy_drone() -> dict:
     return {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in LEGACY_DRONE.items()}
 
 
-# EnvConfig fields added after issue #12, as a stored env without them was.
-ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0}
+# EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
+ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -37,7 +37,13 @@ def with_legacy_drone(env: dict) -> dict:
     Fields it has are kept."""
     if not isinstance(env, dict):
         return env
-    env = {**ADDED_SINCE, **env}
+    env = dict(env)
+    for key, value in ADDED_SINCE.items():
+        group, _, name = key.rpartition(".")
+        if not group:
+            env.setdefault(name, value)
+        elif isinstance(env.get(group), dict):
+            env[group] = {name: value, **env[group]}
     if "controller" in env:
         return env
     out = dict(env)
