@@ -134,11 +134,45 @@ MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.
                ("pid.", "yaw_rate_ki")}
 
 # The drone every run before the firmware-faithful one (issue #12) trained on, as EnvConfig fields: what a stored
-# run's env that lacks the newer fields meant (``run_config.read`` fills them from here), and what tests of the
-# geometric controller build (``registry.preset(name, **LEGACY_DRONE)``).
+# run's or bundle's env that lacks the newer fields meant (``with_legacy_drone`` fills them from here), and what
+# tests of the geometric controller build (``registry.preset(name, **LEGACY_DRONE)``).
 LEGACY_DRONE = {"controller": "geometric", "sim_freq": 250, "ctrl_freq": 250,
                 "cf": dataclasses.replace(CrazyflieParams(), motor_tau=0.0), "pid": FirmwarePid(), "randomize": OFF,
                 "command_accel_limit": 0.0}
+
+
+def legacy_drone_stored() -> dict:
+    """:data:`LEGACY_DRONE` as config.json and export manifests write it (dataclasses as tables)."""
+    return {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in LEGACY_DRONE.items()}
+
+
+# EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
+ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0}
+
+
+def with_legacy_drone(env: dict) -> dict:
+    """A stored ``env`` section with the fields issue #12 added filled in as the drone was before them (the
+    geometric controller at 250 Hz, no rotor lag, no drag, nothing randomised): a run that predates them was
+    trained on that drone. Fields added later (:data:`ADDED_SINCE`) get the value that leaves the env as it was.
+    Fields it has are kept."""
+    if not isinstance(env, dict):
+        return env
+    env = dict(env)
+    for key, value in ADDED_SINCE.items():
+        group, _, name = key.rpartition(".")
+        if not group:
+            env.setdefault(name, value)
+        elif isinstance(env.get(group), dict):
+            env[group] = {name: value, **env[group]}
+    if "controller" in env:
+        return env
+    out = dict(env)
+    for k, v in legacy_drone_stored().items():
+        if k not in out:
+            out[k] = v
+        elif isinstance(v, dict) and isinstance(out[k], dict):
+            out[k] = {**v, **out[k]}
+    return out
 
 
 def _fail(name: str, value, allowed: str) -> None:

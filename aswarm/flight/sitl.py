@@ -28,6 +28,7 @@ import numpy as np
 from aswarm import config_args, envs
 from aswarm.analysis import evaluate
 from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.envs.config import with_legacy_drone
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.randomization import Randomization
 from aswarm.envs.scenarios import cylinders_at
@@ -92,8 +93,7 @@ def make_env(bundle: Bundle, scenario: str | None = None, env_overrides: list[st
         config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
     stored = bundle.manifest.get("source", {}).get("env_config")
     if stored is not None and scenario in (None, bundle.scenario):
-        from aswarm.training.run_config import with_legacy_drone  # fields added since: as the bundle's env was
-
+        # Fields added since the export: as the bundle's env was without them.
         base = config_args.from_dict(envs.EnvConfig, with_legacy_drone(stored), "bundle source.env_config",
                                      require_all=True)
         env = envs.SwarmEnv(config_args.replace_fields(base, extra))

@@ -16,43 +16,9 @@ from pathlib import Path
 from aswarm import config_args
 from aswarm.agents.config import TrainConfig
 from aswarm.core import safety
-from aswarm.envs.config import LEGACY_DRONE, EnvConfig
+from aswarm.envs.config import EnvConfig, legacy_drone_stored, with_legacy_drone
 
 CONVERTER = "aswarm convert-run"
-
-
-def _legacy_drone() -> dict:
-    """:data:`~aswarm.envs.config.LEGACY_DRONE` as config.json writes it (dataclasses as tables)."""
-    return {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in LEGACY_DRONE.items()}
-
-
-# EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
-ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0}
-
-
-def with_legacy_drone(env: dict) -> dict:
-    """A stored ``env`` section with the fields issue #12 added filled in as the drone was before them (the
-    geometric controller at 250 Hz, no rotor lag, no drag, nothing randomised): a run that predates them was
-    trained on that drone. Fields added later (:data:`ADDED_SINCE`) get the value that leaves the env as it was.
-    Fields it has are kept."""
-    if not isinstance(env, dict):
-        return env
-    env = dict(env)
-    for key, value in ADDED_SINCE.items():
-        group, _, name = key.rpartition(".")
-        if not group:
-            env.setdefault(name, value)
-        elif isinstance(env.get(group), dict):
-            env[group] = {name: value, **env[group]}
-    if "controller" in env:
-        return env
-    out = dict(env)
-    for k, v in _legacy_drone().items():
-        if k not in out:
-            out[k] = v
-        elif isinstance(v, dict) and isinstance(out[k], dict):
-            out[k] = {**v, **out[k]}
-    return out
 
 
 def payload(config: TrainConfig) -> dict:
@@ -156,7 +122,7 @@ def convert(run_dir: Path) -> tuple[Path, list[str]]:
     except ValueError as e:
         raise CheckpointError(f"{path}: cannot rebuild its env from scenario {scenario!r}: {e}") from e
     stored = raw.get("env")
-    stored = with_legacy_drone(stored) if isinstance(stored, dict) else _legacy_drone()
+    stored = with_legacy_drone(stored) if isinstance(stored, dict) else legacy_drone_stored()
     filled = []
 
     def merge(base: dict, stored: dict, prefix: str) -> dict:
