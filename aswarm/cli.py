@@ -122,13 +122,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_sitl(args: argparse.Namespace) -> int:
     import json
 
-    from aswarm.flight import sitl
-    from aswarm.flight.estimator import EstimatorConfig
+    from aswarm.flight import estimator, sitl
 
     result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
                            noise=args.noise, latency_ms=args.latency, mass_scale=args.mass_scale,
                            thrust_scale=args.thrust_scale, env_overrides=args.env or [],
-                           estimation=EstimatorConfig(window=args.estimator_window), progress=not args.json)
+                           estimation=estimator.from_args(args), progress=not args.json)
     print(json.dumps(result) if args.json else sitl.format_table(result))
     return 0
 
@@ -202,7 +201,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="aswarm", description=__doc__)
-    from aswarm.flight.estimator import EstimatorConfig
+    from aswarm.flight import estimator
 
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -277,8 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("--thrust-scale", type=float, default=1.0,
                     help="the simulated drone's thrust constant over the nominal (what the controller assumes)")
     si.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
-    si.add_argument("--estimator-window", type=int, default=EstimatorConfig.window, metavar="POSES",
-                    help="poses in the runtime's least-squares velocity fit (default %(default)s)")
+    estimator.add_arguments(si)
     si.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     si.set_defaults(func=cmd_sitl)
 

@@ -40,7 +40,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", default=",".join(map(str, NOISE_MM)), help="mm, comma-separated (must hold 5)")
     p.add_argument("--latency", default=",".join(map(str, LATENCY_MS)), help="ms, comma-separated (must hold 40)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"))
+    from aswarm.flight import estimator
+
+    estimator.add_arguments(p)
     args = p.parse_args(argv)
+    estimation = estimator.from_args(args)
     noise_mm = tuple(int(x) for x in args.noise.split(","))
     latency_ms = tuple(int(x) for x in args.latency.split(","))
     if 5 not in noise_mm or 40 not in latency_ms:
@@ -55,14 +59,15 @@ def main(argv: list[str] | None = None) -> int:
         for c in design(noise_mm, latency_ms):
             t0 = time.perf_counter()
             r = sitl.run_sitl(path, episodes=args.episodes, noise=c["noise_mm"] / 1000, latency_ms=c["latency_ms"],
-                              mass_scale=c["mass"], thrust_scale=c["thrust"])
+                              mass_scale=c["mass"], thrust_scale=c["thrust"], estimation=estimation)
             row = {"policy": name, **c, "episodes": r["episodes"], "success_rate": r["success_rate"],
                    "collision_rate": r["collision_rate"], "seconds": time.perf_counter() - t0}
             results.append(row)
             print(json.dumps(row), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "robustness.json").write_text(json.dumps(results, indent=1))
-    lines = [f"# Robustness in SITL ({args.episodes} episodes per cell, `python experiments/robustness.py`)", ""]
+    lines = [f"# Robustness in SITL ({args.episodes} episodes per cell, `python experiments/robustness.py`)", "",
+             f"The runtime's velocity estimate: {estimation}", ""]
     for name in bundles:
         rows = [r for r in results if r["policy"] == name]
         lines += [f"## {name}: `{bundles[name]}`", "",

@@ -503,7 +503,7 @@ def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch,
                      "0.9", "--filter-margin", "0.2", "--safety-filter.max-iter", "12", "--out", str(tmp_path)]) == 0
     sf = seen[0].safety_filter
     assert (sf.gain_min, sf.fixed_gain, sf.margin, sf.max_iter) == (0.4, 0.9, 0.2, 12)
-    assert dataclasses.replace(sf, gain_min=0.3, fixed_gain=1.5, margin=0.1, max_iter=16) == SafetyFilterConfig()
+    assert dataclasses.replace(sf, gain_min=0.3, fixed_gain=1.5, margin=0.13, max_iter=16) == SafetyFilterConfig()
 
 
 def test_the_gain_range_is_still_swept_by_its_flat_names_as_a_value_hyperparameter():

@@ -17,6 +17,7 @@ from aswarm import cli, envs
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
 from aswarm.analysis import evaluate
+from aswarm.analysis.step_response import characterise
 from aswarm.flight import bundle as fb
 from aswarm.flight import export
 from aswarm.training import checkpoint, runner
@@ -94,9 +95,12 @@ def test_manifest_describes_the_policy(run_dir, exported):
     assert m["action"]["unit"] == "m/s" and m["action"]["frame"] == "world" and m["action"]["high"] == 2.0
     assert m["control"]["rate_hz"] == env.config.policy_freq
     sf = m["safety_filter"]
-    assert sf["enabled"] and sf["gain_source"] == "attention" and sf["margin"] == 0.1 and sf["rho"] == 1e6
+    assert sf["enabled"] and sf["gain_source"] == "attention" and sf["margin"] == 0.13 and sf["rho"] == 1e6
     assert (sf["gate_half_opening"], sf["gate_bar"], sf["drone_radius"]) == (0.3, 0.05, 0.06)
     assert m["networks"]["cbf"]["activation"] == "gelu_tanh" and m["networks"]["actor"]["activation"] == "tanh"
+    # The drone's velocity lag as measured on it: the flight runtime's model velocity estimate flies on it.
+    lag = characterise(env.config)
+    assert m["drone"]["velocity_lag"] == [lag.lag_xy, lag.lag_z] and 0.3 < lag.lag_xy < 0.4
     assert m["npz_sha256"] == hashlib.sha256((exported / fb.NPZ).read_bytes()).hexdigest()
     assert m["source"]["train_config_sha256"] == hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest()
     assert m["source"]["trained_updates"] == 7 and m["source"]["train_config"]["method"] == "attention_cbf"

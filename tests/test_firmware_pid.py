@@ -165,15 +165,16 @@ def test_seen_velocity_is_the_flight_runtimes_estimate_from_the_noisy_positions(
     env = envs.make("hover", randomize=r)
     step, s = jax.jit(env.step), jax.jit(env.reset)(jax.random.PRNGKey(0))
     vel = env.obs_layout.own_slices["vel"]
-    est = estimator.init((1,), estimator.EstimatorConfig(window=4))
+    line = estimator.EstimatorConfig(window=4, velocity="window")
+    est = estimator.init((1,), line)
     for k in range(8):
         if k:
             s = step(s, jnp.array([[0.8, -0.4, 0.3]]))
         seen = np.asarray(s.onboard.pos_history[0], np.float64)  # the noisy position the policy saw
         est, _, _ = estimator.update(est, np.full(1, k / env.config.policy_freq), seen, np.array([[1.0, 0, 0, 0]]),
-                                     np.ones(1, bool))
+                                     np.ones(1, bool), line)
         if k >= 3:  # a full window (the env starts its window at the true start position)
-            want, _ = estimator.estimate(est)
+            want, _ = estimator.estimate(est, line)
             np.testing.assert_allclose(s.obs[0, vel], want[0], atol=2e-4, err_msg=f"step {k}")
     # The noise is in it: 3 mm over 4 poses at 25 Hz moves the slope by centimetres per second.
     true = np.asarray(s.data.qvel[:3])

@@ -58,7 +58,8 @@ def synthetic_bundle(num_agents: int = 4, num_cylinders: int = 8, num_gates: int
         scenario="race", kind="track" if num_gates else "crossing", env=env, env_overrides={},
         course={"gates": gates}, layout=layout,
         networks={"actor": {"activation": "tanh"}, "cbf": {"activation": "gelu_tanh"}}, safety_filter=safety,
-        train_config={}, train_config_sha256="", source="synthetic", trained_updates=0)
+        train_config={}, train_config_sha256="", source="synthetic", trained_updates=0,
+        drone={"controller": "pid", "velocity_lag": list(estimator.FIRMWARE_PID_LAG)})
     manifest["arrays"] = {k: {"shape": list(v.shape), "dtype": "float32"} for k, v in arrays.items()}
     return bundle_from(manifest, arrays)
 
@@ -86,6 +87,7 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
     times = {k: [] for k in ("estimate", "observe", "actor", "gain", "filter", "controller.step")}
     est = estimator.init((n,))
+    sent = estimator.Commands.empty((), n, estimator.Commands.slots(fc.SafetyConfig().stale_after, b.rate_hz))
     wp = np.broadcast_to(np.array(b.manifest["course"]["gates"])[None, :, :3], (n, 4, 3))
     normals = np.zeros_like(wp)
     solved = []
@@ -98,10 +100,11 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
         times["controller.step"].append(time.perf_counter() - c0)
         # The same stages one by one.
         c0 = time.perf_counter()
-        est, _, _ = estimator.update(est, np.full(n, t), pos, quat, np.ones(n, bool))
+        est, _, _ = estimator.update(est, np.full(n, t), pos, quat, np.ones(n, bool), commands=sent)
         vel, ang = estimator.estimate(est)
+        pos_now, vel = estimator.predict(est, np.array(t), sent)
         c1 = time.perf_counter()
-        obs = observe(pos, quat, vel, ang, wp, normals, np.zeros(n, np.int64), np.ones(n, bool), cyl,
+        obs = observe(pos_now, quat, vel, ang, wp, normals, np.zeros(n, np.int64), np.ones(n, bool), cyl,
                       np.zeros_like(cyl), np.full(m, 0.15), np.ones(m, bool), 0.06, b.env["arena_low"],
                       b.env["arena_high"])
         c2 = time.perf_counter()
@@ -113,6 +116,7 @@ def measure(num_agents: int = 4, steps: int = 500, conflict: bool = False, seed:
         res = filter_from_obs(b.layout, obs, cmd, gain, 2.0, 0.06, b.safety, 0.3, 0.05)
         c5 = time.perf_counter()
         solved.append(np.mean(res.intervened))
+        sent = sent.sent(np.array(t), res.u)
         for name, a, z in (("estimate", c0, c1), ("observe", c1, c2), ("actor", c2, c3), ("gain", c3, c4),
                            ("filter", c4, c5)):
             times[name].append(z - a)

@@ -177,6 +177,19 @@ class Bundle:
         return int(self.manifest["control"]["rate_hz"])
 
     @property
+    def velocity_lag(self) -> tuple[float, float] | None:
+        """s, 63 % of a 1 m/s velocity step in x and in z, measured on the drone the policy trained on; bundles from
+        before it was recorded: what their fitted look-ahead implies, else None."""
+        lag = self.manifest.get("drone", {}).get("velocity_lag")
+        if lag is not None:
+            return float(lag[0]), float(lag[1])
+        sf = self.safety_filter
+        if sf.get("fit_lookahead") and sf.get("lookahead_scale", 0) > 0 and sf.get("lookahead_xy", 0) > 0:
+            k = float(sf["lookahead_scale"])
+            return float(sf["lookahead_xy"]) / k, float(sf["lookahead_z"]) / k
+        return None
+
+    @property
     def safety_filter(self) -> Mapping:
         return self.manifest["safety_filter"]
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import ACTIVATIONS
+from aswarm.analysis.step_response import characterise
 from aswarm.core.layout import ObsLayout
 from aswarm.core.safety import manifest_fields
 from aswarm.envs.presets import SCENARIOS
@@ -95,7 +96,10 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
                       "y low, y high, ceiling) | gate frame 5 | previous gate 5 (gate rows where a gate is observed)"}
     # The onboard controller the policy was trained on, and the firmware parameters that select it on the drone
     # (stabilizer.controller: 1 is controller_pid); the geometric controller has no firmware counterpart.
+    # Its measured velocity lag is the flight runtime's model of it (the estimator's velocity="model").
+    drone_lag = characterise(ec)
     drone = {"controller": ec.controller, "motor_tau": ec.cf.motor_tau, "mass": ec.cf.mass,
+             "velocity_lag": [drone_lag.lag_xy, drone_lag.lag_z],
              "firmware_params": {"stabilizer.controller": 1} if ec.controller == "pid" else {},
              "pid": dataclasses.asdict(ec.pid) if ec.controller == "pid" else None}
     manifest = fb.make_manifest(

@@ -39,6 +39,7 @@ from typing import Protocol
 
 import numpy as np
 
+from aswarm.flight import estimator
 from aswarm.flight.bundle import Bundle, load_bundle
 from aswarm.flight.runtime import FlightController, Obstacles, SafetyConfig
 
@@ -263,14 +264,15 @@ def course_from(bundle: Bundle, course_file: str | Path | None) -> dict:
 
 def fly(bundle: Bundle, link: Link, mocap: MocapSource, *, plan: FlightPlan = FlightPlan(),
         safety: SafetyConfig = SafetyConfig(), course: dict | None = None, clock: Callable[[], float] | None = None,
-        log: Callable[[str], None] = print) -> dict:
+        log: Callable[[str], None] = print,
+        estimation: estimator.EstimatorConfig = estimator.EstimatorConfig()) -> dict:
     """Take off, stream setpoints until every drone landed or finished (or the time is up), land.
 
     ``clock`` gives the loop's time in the mocap's clock (default: replay time advancing one control
     period per step when not ``plan.realtime``, else ``time.monotonic``). Returns a summary.
     """
     n = len(link.uris)
-    ctl = FlightController(bundle, n, safety=safety)
+    ctl = FlightController(bundle, n, safety=safety, estimation=estimation)
     course = dict(course or course_from(bundle, None))
     obstacles = course.pop("obstacles", None)
     ctl.reset(**course)
@@ -338,6 +340,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--takeoff-height", type=float, default=1.0, help="m")
     p.add_argument("--max-seconds", type=float, default=60.0)
     p.add_argument("--realtime", action="store_true", help="pace a dry run on the wall clock")
+    estimator.add_arguments(p)
 
 
 def run(args: argparse.Namespace, out: Callable[[str], None] = print) -> int:
@@ -360,7 +363,8 @@ def run(args: argparse.Namespace, out: Callable[[str], None] = print) -> int:
     link = DryRunLink(uris, out) if args.dry_run else CflibLink(uris)
     plan = FlightPlan(takeoff_height=args.takeoff_height, max_seconds=args.max_seconds,
                       realtime=args.realtime or not args.dry_run)
-    summary = fly(bundle, link, mocap, plan=plan, course=course_from(bundle, args.course), log=out)
+    summary = fly(bundle, link, mocap, plan=plan, course=course_from(bundle, args.course), log=out,
+                  estimation=estimator.from_args(args))
     out(f"flight loop ended after {summary['steps']} steps; {len(summary['events'])} events; landed early: "
         f"{summary['landed_early'] or 'none'}")
     return 0

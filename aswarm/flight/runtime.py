@@ -111,6 +111,13 @@ class FlightController:
         self.bundle = bundle
         self.n = num_drones
         self.safety = safety
+        if estimation.velocity == "model" and estimation.lag is None:
+            lag = bundle.velocity_lag
+            if lag is None:
+                raise ValueError("the bundle does not record its drone's velocity lag, which the model velocity "
+                                 "estimate needs: allowed: --velocity-estimate window (EstimatorConfig(velocity="
+                                 "'window')), EstimatorConfig(lag=(xy, z)), or a bundle exported with this version")
+            estimation = dataclasses.replace(estimation, lag=lag)
         self.estimation = estimation
         env = bundle.env
         self.max_speed = bundle.max_speed
@@ -168,6 +175,11 @@ class FlightController:
         self._finished = np.zeros((B, self.n), bool)
         self._landing = np.zeros((B, self.n), bool)
         self._last_u = np.zeros((B, self.n, 3))  # the last command sent: the acceleration limit's start
+        # The commands sent over the oldest pose that is still fresh and one pose interval more: the model estimate's
+        # input.
+        slots = estimator.Commands.slots(self.safety.stale_after, self.bundle.rate_hz)
+        self._sent = estimator.Commands.empty((B,), self.n, slots)
+        self._p_now = np.zeros((B, self.n, 3))  # where the drones were at the last step, as the policy saw them
         self._obstacles = np.zeros((B, self.num_cylinders, 2))
         self._known = np.zeros((B, self.num_cylinders), bool)
         self._flags = np.zeros((len(EVENT_KINDS), B, self.n), bool)
@@ -213,7 +225,7 @@ class FlightController:
 
         prev_seen = self._est.count > 0
         prev_pos = self._est.pos[:, :, -1]
-        self._est, accepted, glitch = estimator.update(self._est, ts, pos, quat, valid, self.estimation)
+        self._est, accepted, glitch = estimator.update(self._est, ts, pos, quat, valid, self.estimation, self._sent)
         seen = self._est.count > 0
         t_last, p, q = estimator.latest(self._est)
         out_of_fence = ((p < self.low) | (p > self.high)).any(-1)
@@ -228,25 +240,33 @@ class FlightController:
             blind = ~(seen & valid) | glitch | stale
             fence = seen & out_of_fence
 
+        vel, ang = estimator.estimate(self._est, self.estimation)
+        p_now, track_from = p, prev_pos
+        if self.estimation.velocity == "model" and self.estimation.predict:
+            # The present as the model has it: the policy sees it, and the gates are passed in it (with old poses
+            # the next gate would show a control step late, a drone already through the last one).
+            p_now, vel = estimator.predict(self._est, now_b, self._sent, self.estimation)
+            track_from = self._p_now
+        self._p_now = p_now
+
         # Progress along the course, on fresh poses only (the simulator's crossing test).
         moved = accepted & prev_seen & ~self._finished
         if self._gates is not None:
             k = np.minimum(self._target, self.num_gates - 1)
             gate = self._gate_geo[self._rows, k]  # [B, n, 6]
-            crossed = moved & gate_crossed(prev_pos, p, gate[..., :3], gate[..., 3:], self._half_opening)
+            crossed = moved & gate_crossed(track_from, p_now, gate[..., :3], gate[..., 3:], self._half_opening)
             self._target = self._target + crossed
             reached = self._target >= self.num_gates
         else:
-            d = p - self._wp[:, :, 0]
+            d = p_now - self._wp[:, :, 0]
             reached = moved & ((d * d).sum(-1) < self._goal_radius**2)
         newly_finished = reached & ~self._finished
         self._finished |= reached
         self._landing |= self._finished | fence | (blind & (age > self.safety.land_after))
 
         cyl_pos, cyl_vel, cyl_radius, cyl_present, lost_obstacles = self._obstacle_arrays(obstacles)
-        vel, ang = estimator.estimate(self._est, self.estimation)
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
-        obs = observe(p, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
+        obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
                       cyl_present, self._collision_radius, self._arena_low, self._arena_high,
                       self.bundle.max_neighbours)
         pol = run_policy(self.bundle, obs)
@@ -260,6 +280,7 @@ class FlightController:
         if self._step_limit:  # the simulator's command acceleration limit (EnvConfig.command_accel_limit)
             u = limit_change(u, self._last_u, self._step_limit)
             self._last_u = u
+        self._sent = self._sent.sent(now_b, u)
 
         # One row per EVENT_KINDS entry, written in place (np.stack of small arrays costs several times more).
         flags = np.empty((len(EVENT_KINDS), B, n), bool)
