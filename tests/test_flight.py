@@ -274,6 +274,8 @@ def test_sitl_with_noise_and_latency_and_its_cli(race, capsys):
     assert out["episodes"] == B and set(out) >= {"success_rate", "collision_ci95", "runtime_ms_per_step"}
     assert cli.main(["sitl", "--bundle", str(race.path), "--estimator-window", "1"]) == 2
     assert "invalid window=1: must be an integer >= 2" in capsys.readouterr().err
+    assert cli.main(["sitl", "--bundle", str(race.path), "--accel-noise", "0"]) == 2
+    assert "invalid accel_noise=0.0: must be a finite number > 0" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"invalid latency=-10.0 ms: allowed: a multiple >= 0 of the onboard"):
         sitl.run_sitl(race.path, episodes=B, latency_ms=-10.0)
     with pytest.raises(ValueError, match=r"invalid latency=15.0 ms: .* tick, 4 ms"):
