@@ -422,13 +422,14 @@ def test_look_ahead_keeps_a_lagging_drone_off_the_floor(lookahead, holds):
     """A point mass whose velocity follows the command with a first-order lag τ = 0.3 s (v̇ = (u − v)/τ), told to
     dive at 2 m/s from 1 m, filtered at 100 Hz with gain 2/s. The single-integrator floor row lets it sink into
     the margin (it brakes only once u changes, and v lags u); at the look-ahead point p + τ v the row is exact
-    for this drone (q̇ = u), so its height never falls below the kept 0.16 m (radius 0.06 + margin 0.1)."""
+    for this drone (q̇ = u), so its height never falls below the kept 0.16 m (radius 0.06 + margin 0.1, the margin
+    of before issue #12 that the figures were taken with)."""
     from aswarm.core.layout import OWN, ObsLayout
 
     layout = ObsLayout(num_cylinders=0, num_neighbours=0)
     tau, dt, sub = 0.3, 0.01, 10
     z, vz, lowest = 1.0, 0.0, np.inf
-    safety = SafetyFilterConfig(lookahead_xy=lookahead, lookahead_z=lookahead)
+    safety = SafetyFilterConfig(lookahead_xy=lookahead, lookahead_z=lookahead, margin=0.1)
     for _ in range(300):
         obs = np.zeros(layout.size)
         obs[OWN.slice("altitude")] = z
@@ -457,7 +458,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
            "gain_min": 0.3, "gain_max": 2.0, "penalty_max": 2.0, "margin": 0.1, "drone_radius": 0.06,
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
-    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False, lookahead_scale=1.0)
+    assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False, lookahead_scale=1.0,
+                                                    margin=0.1)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).
@@ -466,7 +468,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     train = json.loads((evaluate.PRETRAINED_GEOMETRIC / "config.json").read_text())["train"]
     flat = {k: train[k] for k in LEGACY_FIELDS if k in train} or {"gain_min": 0.3, "gain_max": 2.0,
                                                                   "fixed_gain": 1.5, "filter_margin": 0.1}
-    assert nest_legacy(flat) == {"safety_filter": SafetyFilterConfig()}  # it was trained with today's defaults
+    # It was trained with today's defaults but the margin (0.13 since issue #12).
+    assert nest_legacy(flat) == {"safety_filter": SafetyFilterConfig(margin=0.1)}
     assert nest_legacy({"filter_margin": 0.3, "seed": 1}) == {"seed": 1,
                                                              "safety_filter": SafetyFilterConfig(margin=0.3)}
     assert nest_legacy({"gain_min": 0.5, "safety_filter": {"tol": 1e-5}})["safety_filter"] == {"tol": 1e-5,
