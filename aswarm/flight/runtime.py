@@ -1,7 +1,8 @@
 """``FlightController``: mocap poses in, bounded world-frame velocity setpoints out.
 
 One :meth:`FlightController.step` per control period (the manifest's rate, 25 Hz for the shipped
-scenarios): check the poses, update the velocity estimates, track each drone's gates (or goal),
+scenarios): check the poses, update the velocity estimates (by default a model of the drone driven by the commands
+sent, carried to the present: :mod:`aswarm.flight.estimator`), track each drone's gates (or goal),
 build the observations as the simulator does, run the actor, the attention-CBF gain and the CBF
 safety filter, and clamp. Arrays take leading batch axes (worlds) so that software-in-the-loop
 flies many episodes through this same code.
@@ -174,9 +175,8 @@ class FlightController:
         self._target = np.zeros((B, self.n), np.int64)
         self._finished = np.zeros((B, self.n), bool)
         self._landing = np.zeros((B, self.n), bool)
-        self._last_u = np.zeros((B, self.n, 3))  # the last command sent: the acceleration limit's start
         # The commands sent over the oldest pose that is still fresh and one pose interval more: the model estimate's
-        # input.
+        # input; the newest is the acceleration limit's start.
         slots = estimator.Commands.slots(self.safety.stale_after, self.bundle.rate_hz)
         self._sent = estimator.Commands.empty((B,), self.n, slots)
         self._p_now = np.zeros((B, self.n, 3))  # where the drones were at the last step, as the policy saw them
@@ -278,8 +278,7 @@ class FlightController:
         np.maximum(u, -self.max_speed, out=u)  # np.clip, in place
         np.minimum(u, self.max_speed, out=u)
         if self._step_limit:  # the simulator's command acceleration limit (EnvConfig.command_accel_limit)
-            u = limit_change(u, self._last_u, self._step_limit)
-            self._last_u = u
+            u = limit_change(u, self._sent.u[-1], self._step_limit)
         self._sent = self._sent.sent(now_b, u)
 
         # One row per EVENT_KINDS entry, written in place (np.stack of small arrays costs several times more).
