@@ -358,8 +358,8 @@ def _lagging_drone(cmd, dt, tau, noise, rng, steps=60):
 
 def test_model_estimate_follows_a_lagging_drone_without_the_windows_lag():
     # A drone that follows its commands with the modelled lag: the model estimate carries the velocity through a
-    # 1 m/s step, where the window's line fit lags it by about half its window (60 ms at 25 Hz: 0.6 * (1 - e^-t/tau)
-    # ... of the acceleration, tens of cm/s early in the step).
+    # 1 m/s step, where the window's line fit lags it by about half its window: 60 ms at 25 Hz times the step's
+    # initial acceleration (1 m/s / 0.34 s = 2.9 m/s^2), about 0.18 m/s early in the step.
     tau = np.array([0.34, 0.34, 0.22])
     model = estimator.EstimatorConfig(velocity="model", lag=(0.34, 0.22))
     window = estimator.EstimatorConfig(velocity="window", window=4)
