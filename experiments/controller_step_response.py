@@ -3,8 +3,9 @@ the characteristics the safety filter and the MPC are fitted to.
 
     python experiments/controller_step_response.py --out experiments/results/controller_step.png
 
-Models: the firmware's controller_pid with rotor lag (the default drone), the same without rotor lag, and the
-geometric controller every run before issue #12 trained on. Prints one Markdown table of
+Models: the firmware's controller_pid with rotor lag (the default drone), the same without rotor lag, the
+firmware's Mellinger controller on full-state setpoints that integrate the command (here one per controller
+tick), and the geometric controller every run before issue #12 trained on. Prints one Markdown table of
 ``analysis.step_response.characterise`` per model.
 """
 
@@ -30,6 +31,7 @@ def models() -> dict:
     return {
         "firmware PID, rotor lag 0.136 s (default)": pid,
         "firmware PID, no rotor lag": dataclasses.replace(pid, cf=dataclasses.replace(pid.cf, motor_tau=0.0)),
+        "firmware Mellinger, rotor lag 0.136 s": envs.preset("hover", controller="mellinger"),
         "geometric (before issue #12)": envs.preset("hover", **LEGACY_DRONE),
     }
 

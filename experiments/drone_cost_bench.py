@@ -1,5 +1,6 @@
 """What the firmware-faithful drone costs the trainer: end-to-end env-steps/s of the default race training on the
-firmware drone with randomisation, against the geometric drone of before issue #12, in one process, alternating.
+firmware drone with randomisation (the PID, and Mellinger), against the geometric drone of before issue #12, in one
+process, alternating.
 
     python experiments/drone_cost_bench.py --rounds 3 --updates 10
 
@@ -24,7 +25,9 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--updates", type=int, default=10, help="updates per timed chunk")
     args = p.parse_args()
-    drones = {"firmware PID + randomisation (default)": (), "geometric (before issue #12)": tuple(LEGACY_DRONE.items())}
+    drones = {"firmware PID + randomisation (default)": (),
+              "firmware Mellinger + randomisation": (("controller", "mellinger"),),
+              "geometric (before issue #12)": tuple(LEGACY_DRONE.items())}
     programs, rates = {}, {name: [] for name in drones}
     for name, overrides in drones.items():
         config = TrainConfig(scenario="race", env_overrides=overrides, devices=1)
@@ -46,8 +49,9 @@ def main() -> None:
     print("|---|---:|---:|")
     for name in drones:
         print(f"| {name} | {statistics.median(rates[name]):,.0f} | {programs[name][3]:.0f} |")
-    a, b = (statistics.median(rates[n]) for n in drones)
-    print(f"ratio firmware / geometric: {a / b:.2f}")
+    geometric = statistics.median(rates["geometric (before issue #12)"])
+    for name in list(drones)[:2]:
+        print(f"ratio {name} / geometric: {statistics.median(rates[name]) / geometric:.2f}")
 
 
 if __name__ == "__main__":

@@ -205,3 +205,18 @@ def test_corrupt_checkpoint_gives_a_clear_error(run_dir, tmp_path):
     with pytest.raises(checkpoint.CheckpointError, match="cannot be restored"):
         export.export(broken, tmp_path / "b")
     assert not (tmp_path / "b").exists()
+
+
+def test_a_mellinger_policy_tells_the_flight_side_to_stream_full_states(tmp_path):
+    from aswarm.agents.train import make_env
+
+    config = TrainConfig(scenario="race", num_envs=8, rollout_steps=4, total_steps=64,
+                         env_overrides=(("num_agents", 3), ("controller", "mellinger")))
+    runner.write_config(tmp_path, config)
+    m = export.build_manifest(config, make_env(config), source="test", trained_updates=0,
+                              config_text=(tmp_path / "config.json").read_text())
+    d = m["drone"]
+    assert d["controller"] == "mellinger" and d["firmware_params"] == {"stabilizer.controller": 2}
+    assert d["setpoint"] == "full_state" and d["reference_leash"] == 0.3 and d["mellinger"]["kp_xy"] == 0.4
+    # Its velocity lag is Mellinger's, measured: quicker than the PID's 0.34 s.
+    assert 0.15 < d["velocity_lag"][0] < 0.3

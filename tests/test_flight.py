@@ -693,6 +693,35 @@ def test_fly_dry_run_replays_a_pose_log(synthetic, tmp_path, capsys):
     assert sum(line.startswith("land cf") for line in out) == 4 and out[-1].startswith("flight loop ended")
 
 
+def _full_state_sends(synthetic, csv, leash):
+    """Per control step, the (position, velocity) setpoints a dry run sends drone 0 of a Mellinger bundle."""
+    m = dict(synthetic.manifest)
+    m["drone"] = {**m["drone"], "controller": "mellinger", "setpoint": "full_state", "reference_leash": leash}
+    lines = []
+    ffly.fly(fb.bundle_from(m, dict(synthetic.arrays)), ffly.DryRunLink(URIS.split(","), lines.append),
+             ffly.ReplaySource(csv, 4), plan=ffly.FlightPlan(realtime=False), log=lines.append)
+    assert not any("send_velocity_world_setpoint" in line for line in lines)
+    sends = [line for line in lines if " cf0 " in line and "send_full_state_setpoint" in line]
+    nums = [[float(x) for x in re.findall(r"[-+]\d+\.\d+", line.split("setpoint", 1)[1])] for line in sends]
+    return np.array(nums)[:, :3], np.array(nums)[:, 3:6]
+
+
+def test_fly_streams_full_states_along_the_integrated_command_to_mellinger(synthetic, tmp_path):
+    csv = _replay_csv(tmp_path / "poses.csv")
+    period = 1.0 / synthetic.manifest["control"]["rate_hz"]
+    pos, vel = _full_state_sends(synthetic, csv, leash=10.0)
+    assert len(pos) == round(0.4 / period) and np.abs(vel).max() > 0.1
+    # The setpoint is the reference plus half a step of the command; the reference moves a whole step of it:
+    # consecutive setpoints are (v_k + v_k+1) / 2 * period apart (to the printed 1 mm).
+    np.testing.assert_allclose(np.diff(pos, axis=0), (vel[:-1] + vel[1:]) / 2 * period, atol=2.5e-3)
+    np.testing.assert_allclose(pos[0], START[0] + vel[0] * period / 2, atol=2e-3)  # from where the drone was
+    # On a 1 cm leash the reference is dragged along by the drone (0.5 m/s in x in the replay, 0.18 m in these
+    # 0.36 s), far beyond where the commands alone would take it.
+    pos, vel = _full_state_sends(synthetic, csv, leash=0.01)
+    commanded = np.sum(vel[:-1, 0]) * period
+    assert abs(commanded) < 0.05 and pos[-1, 0] - pos[0, 0] > 0.1
+
+
 def test_fly_refuses_bad_input_and_stops_on_an_exception(synthetic, tmp_path, capsys):
     csv = _replay_csv(tmp_path / "poses.csv")
     base = ["fly", "--bundle", str(synthetic.path), "--mocap", f"replay:{csv}"]

@@ -24,7 +24,8 @@ def probe_config(config: EnvConfig) -> EnvConfig:
     """``config``'s drone (controller, rates, constants, gains) alone in the hover arena, sampled at every
     controller tick, nothing randomised, and a goal too small to reach (a drone that arrives stops flying). The
     command steps as given (no acceleration limit): the lag measured is the drone's to the command it receives."""
-    drone = {f: getattr(config, f) for f in ("controller", "sim_freq", "ctrl_freq", "cf", "gains", "pid")}
+    drone = {f: getattr(config, f)
+             for f in ("controller", "sim_freq", "ctrl_freq", "cf", "gains", "pid", "mellinger", "reference_leash")}
     return registry.preset("hover", **drone, policy_freq=config.ctrl_freq, randomize=OFF, command_accel_limit=0.0,
                            episode_seconds=30.0,
                            goal_radius=1e-9, arena_low=(-50.0, -50.0, 0.0), arena_high=(50.0, 50.0, 20.0))

@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.firmware_mellinger import FirmwareMellinger
 from aswarm.envs.firmware_pid import FirmwarePid
 from aswarm.envs.onboard_controller import ControllerGains
 from aswarm.envs.presets import SCENARIOS
@@ -14,10 +15,13 @@ from aswarm.envs.randomization import OFF, Randomization
 REWARDS = ("shaped", "paper")
 # The onboard controller between the policy's velocity command and the motors. "pid": the Crazyflie
 # firmware's default controller_pid (firmware_pid.py), what a stock Crazyflie runs on velocity setpoints;
-# "geometric": the SO(3) controller every run before the firmware's was trained with (onboard_controller.py).
-CONTROLLERS = ("pid", "geometric")
+# "mellinger": the firmware's controller_mellinger (firmware_mellinger.py) on full-state setpoints that integrate
+# the velocity command; "geometric": the SO(3) controller every run before the firmware's was trained with
+# (onboard_controller.py).
+CONTROLLERS = ("pid", "mellinger", "geometric")
 # The firmware runs controller_pid's attitude and rate loops at 500 Hz and its velocity loop at 100 Hz
-# (stabilizer_types.h: ATTITUDE_RATE, POSITION_RATE): the physics steps at the attitude rate.
+# (stabilizer_types.h: ATTITUDE_RATE, POSITION_RATE): the physics steps at the attitude rate. Mellinger runs
+# whole at 500 Hz; its setpoint is latched at the 100 Hz tick (where command latency is counted).
 PID_RATES = {"sim_freq": 500, "ctrl_freq": 100}
 FORMATIONS = ("column", "grid")
 MAX_AGENTS = 64
@@ -101,7 +105,13 @@ class EnvConfig:
     safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
     cf: CrazyflieParams = CrazyflieParams()
     gains: ControllerGains = ControllerGains()  # controller "geometric"
-    pid: FirmwarePid = FirmwarePid()  # controller "pid"
+    pid: FirmwarePid = FirmwarePid()  # controller "pid"; its thrust map also serves "mellinger"
+    mellinger: FirmwareMellinger = FirmwareMellinger()  # controller "mellinger"
+    # m, controller "mellinger": the full-state setpoint's position (the integrated command) is kept this close
+    # to the drone, so a drone that fell behind is not pulled back along the whole way it missed. At 0.3 m the
+    # position term alone asks for kp_xy * 0.3 / (mass * g) = 0.42, about 23 degrees of tilt: near what the
+    # PID's 20-degree limit allows.
+    reference_leash: float = 0.3
     randomize: Randomization = Randomization()
 
     def __post_init__(self) -> None:
@@ -131,7 +141,8 @@ class EnvConfig:
 # Fields of cf., gains. and pid. where 0 means "left out" rather than nonsense.
 MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.", "rate_kd"), ("pid.", "vel_xy_ki"),
                ("pid.", "vel_z_ki"), ("pid.", "att_ki"), ("pid.", "yaw_ki"), ("pid.", "rate_ki"),
-               ("pid.", "yaw_rate_ki")}
+               ("pid.", "yaw_rate_ki"), ("mellinger.", "ki_xy"), ("mellinger.", "ki_z"), ("mellinger.", "ki_m_xy"),
+               ("mellinger.", "ki_m_z"), ("mellinger.", "kd_omega_rp")}
 
 # The drone every run before the firmware-faithful one (issue #12) trained on, as EnvConfig fields: what a stored
 # run's or bundle's env that lacks the newer fields meant (``with_legacy_drone`` fills them from here), and what
@@ -147,7 +158,8 @@ def legacy_drone_stored() -> dict:
 
 
 # EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
-ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0}
+ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
+               "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": 0.3}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -196,12 +208,14 @@ def validate(c: EnvConfig) -> None:
     _check_finite("cf.", c.cf)
     _check_finite("gains.", c.gains)
     _check_finite("pid.", c.pid)
+    _check_finite("mellinger.", c.mellinger)
     if c.controller not in CONTROLLERS:
         _fail("controller", c.controller, f"allowed: {', '.join(CONTROLLERS)}")
-    if c.controller == "pid":
+    if c.controller in ("pid", "mellinger"):
         for name, rate in PID_RATES.items():
             if getattr(c, name) != rate:
-                _fail(name, getattr(c, name), f"controller 'pid' runs at the firmware's rates: {name}={rate}")
+                _fail(name, getattr(c, name),
+                      f"controller {c.controller!r} runs at the firmware's rates: {name}={rate}")
     if not c.pid.max_tilt_deg < 90:
         _fail("pid.max_tilt_deg", c.pid.max_tilt_deg, "must be in (0, 90) degrees")
     if not c.pid.motor_thrust_min < c.pid.motor_thrust_max:
@@ -209,7 +223,7 @@ def validate(c: EnvConfig) -> None:
               f"must be < pid.motor_thrust_max={c.pid.motor_thrust_max}")
     # Physical constants and gains: a zero or negative one has no meaning (MuJoCo itself would refuse a mass
     # of 0 with a multi-line error), and a drone that cannot lift its weight never takes off.
-    for prefix, obj in (("cf.", c.cf), ("gains.", c.gains), ("pid.", c.pid)):
+    for prefix, obj in (("cf.", c.cf), ("gains.", c.gains), ("pid.", c.pid), ("mellinger.", c.mellinger)):
         for f in dataclasses.fields(obj):
             if (prefix, f.name) in MAY_BE_ZERO:
                 if any(x < 0 for x in (getattr(obj, f.name) if f.name == "drag" else (getattr(obj, f.name),))):
@@ -233,6 +247,8 @@ def validate(c: EnvConfig) -> None:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.min_moving > c.num_moving:
         _fail("min_moving", c.min_moving, f"must be <= num_moving={c.num_moving}")
+    if not c.reference_leash > 0:
+        _fail("reference_leash", c.reference_leash, "must be > 0 m")
     if c.sim_freq < 240:
         _fail("sim_freq", c.sim_freq, "must be >= 240 Hz")
     if c.ctrl_freq <= 0 or c.sim_freq % c.ctrl_freq:

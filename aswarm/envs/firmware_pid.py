@@ -169,16 +169,21 @@ def attitude_loop(state: PidState, quat: jax.Array, ang_vel: jax.Array, pid: Fir
            + jnp.stack([pid.rate_kd, pid.rate_kd, jnp.zeros_like(pid.rate_kd)]) * d_rate)  # yaw rate kd 0
     out = jnp.clip(out, -INT16_MAX, INT16_MAX)
 
-    # powerDistributionLegacy: roll and pitch split over the two motors of a side; yaw output negated.
-    r, p, y = out[:, 0] / 2.0, out[:, 1] / 2.0, -out[:, 2]
-    t = state.thrust
-    motors = jnp.stack([t - r + p + y, t - r - p - y, t + r - p + y, t + r + p - y], -1)
-    # powerDistributionCap: the excess of the highest motor over 65535 comes off all four.
-    excess = jnp.maximum(jnp.max(motors, -1, keepdims=True) - PWM_MAX, 0.0)
-    motors = jnp.clip(motors - excess, 0.0, PWM_MAX)
+    motors = power_distribution(state.thrust, out[:, 0], out[:, 1], -out[:, 2])  # control->yaw = -yaw output
     state = state.replace(integ=jnp.concatenate([state.integ[:, :3], att_integ, rate_integ], -1),
                           prev=jnp.concatenate([att, gyro], -1))
     return state, motors
+
+
+def power_distribution(thrust: jax.Array, roll: jax.Array, pitch: jax.Array, yaw: jax.Array) -> jax.Array:
+    """``powerDistributionLegacy`` then ``powerDistributionCap``: a controller's thrust and its roll, pitch and
+    yaw outputs (``control_t``, PWM units) -> motor commands [n, 4] (0 to 65535), motor order 0..3 = M1..M4."""
+    r, p = roll / 2.0, pitch / 2.0  # roll and pitch split over the two motors of a side
+    t = thrust
+    motors = jnp.stack([t - r + p + yaw, t - r - p - yaw, t + r - p + yaw, t + r + p - yaw], -1)
+    # The cap: the excess of the highest motor over 65535 comes off all four.
+    excess = jnp.maximum(jnp.max(motors, -1, keepdims=True) - PWM_MAX, 0.0)
+    return jnp.clip(motors - excess, 0.0, PWM_MAX)
 
 
 def motor_rpm(motors: jax.Array, pid: FirmwarePid, kf_nominal: float) -> jax.Array:

@@ -24,6 +24,7 @@ import numpy as np
 from flax import struct
 
 from aswarm.envs.crazyflie import CrazyflieParams
+from aswarm.envs.firmware_mellinger import FirmwareMellinger
 from aswarm.envs.firmware_pid import FirmwarePid
 
 if TYPE_CHECKING:  # imported for hints only: the config and the controller import this module
@@ -98,6 +99,8 @@ class EnvParams:
     cf: DroneParams
     gains: GainParams  # the geometric controller's
     pid: FirmwarePid  # the firmware controller's, as arrays
+    mellinger: FirmwareMellinger  # the firmware's Mellinger controller's, as arrays
+    reference_leash: jax.Array  # m, how far Mellinger's setpoint may lead or trail the drone
     max_speed: jax.Array  # m/s, per-axis clip of the velocity command
     safety_margin: jax.Array  # m; the cost grows as clearance falls below it
     progress_weight: jax.Array
@@ -129,7 +132,9 @@ class EnvParams:
             command_step_limit=_f32(cfg.command_accel_limit / cfg.policy_freq), lateral_weight=_f32(cfg.lateral_weight),
             wrong_side_weight=_f32(cfg.wrong_side_weight), paper_epsilon=_f32(cfg.paper_epsilon),
             moving_amplitude=_f32(cfg.moving_amplitude), moving_omega=_f32(2 * np.pi / cfg.moving_period),
-            pid=jax.tree.map(_f32, cfg.pid), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0), mocap_delay=_f32(0.0),
+            pid=jax.tree.map(_f32, cfg.pid), mellinger=jax.tree.map(_f32, cfg.mellinger),
+            reference_leash=_f32(cfg.reference_leash), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0),
+            mocap_delay=_f32(0.0),
         )
 
 

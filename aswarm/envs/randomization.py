@@ -103,13 +103,19 @@ def sample(key: jax.Array, nominal, r: Randomization, ticks_per_step: int):
     )
     gain = _uniform(keys[4], r.gains)
     pid = nominal.pid.replace(**{name: getattr(nominal.pid, name) * gain for name in GAIN_FIELDS})
+    mellinger = nominal.mellinger.replace(**{name: getattr(nominal.mellinger, name) * gain
+                                            for name in MELLINGER_GAIN_FIELDS})
     # Whole ticks; the nudge keeps a range of one value (SITL's) from flooring 0.7 * 10 = 6.9999995 to 6.
     latency = jnp.floor(_uniform(keys[5], r.latency) * ticks_per_step + 1e-4)
     delay = jax.random.randint(keys[7], (), int(r.mocap_delay[0]), int(r.mocap_delay[1]) + 1)
-    return nominal.replace(cf=cf, pid=pid, latency_ticks=latency, mocap_noise=_uniform(keys[6], r.mocap_noise),
-                           mocap_delay=delay.astype(jnp.float32))
+    return nominal.replace(cf=cf, pid=pid, mellinger=mellinger, latency_ticks=latency,
+                           mocap_noise=_uniform(keys[6], r.mocap_noise), mocap_delay=delay.astype(jnp.float32))
 
 
 # The controller's gains (FirmwarePid fields) that the gain factor scales; limits and the thrust map stay.
 GAIN_FIELDS = ("vel_xy_kp", "vel_xy_ki", "vel_z_kp", "vel_z_ki", "att_kp", "att_ki", "yaw_kp", "yaw_ki", "yaw_kd",
                "rate_kp", "rate_ki", "rate_kd", "yaw_rate_kp", "yaw_rate_ki")
+# The same for controller_mellinger (FirmwareMellinger fields): the feed-forward mass, gravity, the force-to-PWM
+# factor and the integrators' ranges stay.
+MELLINGER_GAIN_FIELDS = ("kp_xy", "kd_xy", "ki_xy", "kp_z", "kd_z", "ki_z", "kr_xy", "kw_xy", "ki_m_xy", "kr_z", "kw_z",
+                         "ki_m_z", "kd_omega_rp")

@@ -25,14 +25,23 @@ import numpy as np
 from flax import struct
 
 from aswarm.core import geometry as geo
+from aswarm.core.command import advance_reference, setpoint_position
 from aswarm.core.command import limit_change as limit_command_change
 from aswarm.core.estimation import slope_weights
 from aswarm.core.layout import ObsLayout
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
-from aswarm.envs import firmware_pid, randomization
+from aswarm.envs import firmware_mellinger, firmware_pid, randomization
 from aswarm.envs.config import EnvConfig
-from aswarm.envs.dynamics import DroneState, drone_state, physics_model, physics_step, rotor_lag, set_drone_state
+from aswarm.envs.dynamics import (
+    DroneState,
+    drone_state,
+    physics_model,
+    physics_step,
+    quat_to_rotmat,
+    rotor_lag,
+    set_drone_state,
+)
 from aswarm.envs.mjx_import import mjx
 from aswarm.envs.onboard_controller import velocity_controller
 from aswarm.envs.params import EnvParams
@@ -71,6 +80,10 @@ class Onboard:
     # [velocity_window, n, 3] the noisy positions the seen velocities are fitted to, the newest first; None
     # where the policy sees the true velocities
     pos_history: jax.Array | None = None
+    mellinger: firmware_mellinger.MellingerState | None = None  # controller "mellinger"
+    # [3, n, 3] controller "mellinger": where the full-state setpoints of this policy step and of the last two
+    # start (the velocity commands integrated, core.command), the newest first
+    reference: jax.Array | None = None
 
 
 @struct.dataclass
@@ -170,17 +183,20 @@ class SwarmEnv:
             steps=jnp.zeros((), jnp.int32),
         )
         hover_rpm = jnp.sqrt(p.cf.mass * cfg.cf.gravity / (4 * p.cf.kf))
-        pid = None
+        pid = mel = reference = None
+        hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
         if cfg.controller == "pid":
-            hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
             pid = firmware_pid.initial_state(drones.quat, drones.ang_vel, hover, p.pid)
+        elif cfg.controller == "mellinger":
+            mel = firmware_mellinger.initial_state(drones.ang_vel, hover, p.mellinger)
+            reference = jnp.broadcast_to(drones.pos, (3,) + drones.pos.shape)
         obs = self._observe(drones, layout, tracker, jnp.zeros(()))
         w = self._velocity_weights
         history = None if w is None else jnp.broadcast_to(drones.pos, (w.shape[0],) + drones.pos.shape)
         onboard = Onboard(pid=pid, rpm=jnp.broadcast_to(hover_rpm, (n, 4)), commands=jnp.zeros((2, n, 3)),
                           obs_history=jnp.broadcast_to(obs, (cfg.randomize.max_delay,) + obs.shape),
                           key=jax.random.fold_in(key, 2), params=drawn,
-                          pos_history=history)
+                          pos_history=history, mellinger=mel, reference=reference)
         seen, onboard = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)
         state = State(data=data, obs=seen, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
                       done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
@@ -211,35 +227,48 @@ class SwarmEnv:
             rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim) if self.lag else rpm_cmd
             return physics_step(self.mjx_model, d, rpm, p.cf, self.drag), rpm
 
+        if ob.mellinger is not None:
+            # The full-state setpoints' positions for this step's command and the last two's (latency).
+            sp = setpoint_position(ob.reference, jnp.concatenate([cmd[None], ob.commands]), cfg.dt)
+
         def control(carry, tick):
-            data, pid, rpm, tr, hazard = carry
+            data, pid, mel, rpm, tr, hazard = carry
             now = self._command(cmd, ob.commands, tick, p) if self.latency else cmd
             s = drone_state(data, n)
-            if pid is None:
-                rpm_cmd = velocity_controller(s, now, p.gains, p.cf)
-            else:
+            if pid is not None:
                 pid = firmware_pid.velocity_loop(pid, s.quat, s.vel, now, p.pid, dt_ctrl)
+            elif mel is not None:
+                sp_pos = self._command(sp[0], sp[1:], tick, p) if self.latency else sp[0]
+            else:
+                rpm_cmd = velocity_controller(s, now, p.gains, p.cf)
 
             def inner(c, _):
-                d, pid, rpm, t, h = c
+                d, pid, mel, rpm, t, h = c
                 prev = drone_state(d, n)
-                if pid is None:
-                    target = rpm_cmd
-                else:
+                if pid is not None:
                     pid, motors = firmware_pid.attitude_loop(pid, prev.quat, prev.ang_vel, p.pid, dt_sim)
                     target = firmware_pid.motor_rpm(motors, p.pid, self._kf_nominal)
+                elif mel is not None:
+                    mel, motors = firmware_mellinger.control(mel, quat_to_rotmat(prev.quat), prev.ang_vel, prev.pos,
+                                                             prev.vel, sp_pos, now, p.mellinger, dt_sim)
+                    target = firmware_pid.motor_rpm(motors, p.pid, self._kf_nominal)
+                else:
+                    target = rpm_cmd
                 d, rpm = physics(d, target, rpm)
                 t, hz = self._check(prev.pos, drone_state(d, n).pos, d.time, layout, frames, t)
-                return (d, pid, rpm, t, jnp.minimum(h, hz)), None
+                return (d, pid, mel, rpm, t, jnp.minimum(h, hz)), None
 
-            return jax.lax.scan(inner, (data, pid, rpm, tr, hazard), None, length=cfg.ctrl_every)[0], None
+            return jax.lax.scan(inner, (data, pid, mel, rpm, tr, hazard), None, length=cfg.ctrl_every)[0], None
 
-        (data, pid, rpm, tr, hazard), _ = jax.lax.scan(
-            control, (state.data, ob.pid, ob.rpm, tr0, jnp.full(n, geo.FAR)), jnp.arange(self.ticks)
+        (data, pid, mel, rpm, tr, hazard), _ = jax.lax.scan(
+            control, (state.data, ob.pid, ob.mellinger, ob.rpm, tr0, jnp.full(n, geo.FAR)), jnp.arange(self.ticks)
         )
-        ob = ob.replace(pid=pid, rpm=rpm, commands=jnp.stack([cmd, ob.commands[0]]))
-
         drones = drone_state(data, n)
+        ob = ob.replace(pid=pid, mellinger=mel, rpm=rpm, commands=jnp.stack([cmd, ob.commands[0]]))
+        if mel is not None:
+            ahead = advance_reference(ob.reference[0], cmd, cfg.dt, drones.pos, p.reference_leash)
+            ob = ob.replace(reference=jnp.concatenate([ahead[None], ob.reference[:2]]))
+
         t = data.time
         newly_finished = tr.finished & ~tr0.finished
         newly_collided = tr.collided & ~tr0.collided
@@ -296,8 +325,8 @@ class SwarmEnv:
         return self.config.randomize.max_latency > 0
 
     def _command(self, cmd: jax.Array, earlier: jax.Array, tick: jax.Array, p: EnvParams) -> jax.Array:
-        """The velocity command the onboard controller holds at ``tick`` of this policy step when commands
-        arrive ``p.latency_ticks`` ticks late: this step's, or one of the last two steps'."""
+        """The velocity command (or setpoint position) the onboard controller holds at ``tick`` of this policy
+        step when commands arrive ``p.latency_ticks`` ticks late: this step's, or one of the last two steps'."""
         age = tick - p.latency_ticks  # < 0: still the command of an earlier step
         return jnp.where(age >= 0, cmd, jnp.where(age >= -self.ticks, earlier[0], earlier[1]))
 

@@ -26,6 +26,9 @@ from aswarm.envs.presets import SCENARIOS
 from aswarm.envs.swarm_env import SwarmEnv
 from aswarm.flight import bundle as fb
 
+# The firmware's stabilizer.controller of each onboard controller model that the firmware has.
+FIRMWARE_CONTROLLER = {"pid": 1, "mellinger": 2}
+
 
 def policy_arrays(params: dict, obs_norm) -> dict[str, np.ndarray]:
     """Flat ``{name: float32 array}`` of the actor, the attention-CBF network and the normalizer.
@@ -94,14 +97,19 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
               "gate_bar": ec.gate_bar,
               "rows": "cylinders M | observed neighbours (n-1, or max_neighbours) | floor 1 | walls 5 (x low, x high, "
                       "y low, y high, ceiling) | gate frame 5 | previous gate 5 (gate rows where a gate is observed)"}
-    # The onboard controller the policy was trained on, and the firmware parameters that select it on the drone
-    # (stabilizer.controller: 1 is controller_pid); the geometric controller has no firmware counterpart.
-    # Its measured velocity lag is the flight runtime's model of it (the estimator's velocity="model").
+    # The onboard controller the policy was trained on, the firmware parameters that select it on the drone
+    # (stabilizer.controller: 1 is controller_pid, 2 Mellinger) and the setpoints it is streamed: velocities, or
+    # for Mellinger full states along the integrated command (core.command); the geometric controller has no
+    # firmware counterpart. Its measured velocity lag is the flight runtime's model of it (velocity="model").
     drone_lag = characterise(ec)
     drone = {"controller": ec.controller, "motor_tau": ec.cf.motor_tau, "mass": ec.cf.mass,
              "velocity_lag": [drone_lag.lag_xy, drone_lag.lag_z],
-             "firmware_params": {"stabilizer.controller": 1} if ec.controller == "pid" else {},
+             "firmware_params": {"stabilizer.controller": FIRMWARE_CONTROLLER[ec.controller]}
+             if ec.controller in FIRMWARE_CONTROLLER else {},
+             "setpoint": "full_state" if ec.controller == "mellinger" else "velocity",
              "pid": dataclasses.asdict(ec.pid) if ec.controller == "pid" else None}
+    if ec.controller == "mellinger":
+        drone.update(mellinger=dataclasses.asdict(ec.mellinger), reference_leash=ec.reference_leash)
     manifest = fb.make_manifest(
         scenario=ec.scenario, kind=SCENARIOS[ec.scenario].kind, env=env_fields,
         env_overrides={k: list(v) if isinstance(v, tuple) else v for k, v in config.env_overrides},

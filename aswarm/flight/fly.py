@@ -6,7 +6,12 @@ The loop, at the manifest's control rate (25 Hz for the shipped scenarios):
 2. forward the poses to the drones (``extpose``: their onboard estimators fuse the mocap pose);
 3. :meth:`FlightController.step` gives world-frame velocity setpoints (finite, within ±max_speed);
 4. send each drone ``send_velocity_world_setpoint(vx, vy, vz, yawrate)``; a drone the controller
-   asks to land is handed to the high-level commander's ``land``.
+   asks to land is handed to the high-level commander's ``land``. A policy trained on the firmware's
+   Mellinger controller (manifest ``drone.setpoint`` "full_state") is sent
+   ``send_full_state_setpoint(pos, vel, acc, orientation, rollrate, pitchrate, yawrate)`` instead: the
+   velocity setpoint, a position that moves with it (the command integrated from where the drone was at
+   the first step, kept within ``drone.reference_leash`` of the drone: ``aswarm.core.command``, as the
+   simulated drone it trained on got it), zero acceleration, a level orientation and zero rates.
 
 Units and conventions (cflib): ``send_velocity_world_setpoint`` takes vx, vy, vz in **m/s** in the
 world frame and the yaw rate in **degrees/s** (not rad/s); this loop sends yaw rate 0, as the
@@ -39,6 +44,7 @@ from typing import Protocol
 
 import numpy as np
 
+from aswarm.core import command
 from aswarm.flight import estimator
 from aswarm.flight.bundle import Bundle, load_bundle
 from aswarm.flight.runtime import FlightController, Obstacles, SafetyConfig
@@ -129,6 +135,9 @@ class Link(Protocol):
 
     def send_velocities(self, t: float, velocities: np.ndarray, active: np.ndarray) -> None: ...
 
+    def send_full_states(self, t: float, positions: np.ndarray, velocities: np.ndarray,
+                         active: np.ndarray) -> None: ...
+
     def land(self, drones: Sequence[int], duration: float) -> None: ...
 
     def emergency_stop(self) -> None: ...
@@ -158,6 +167,12 @@ class DryRunLink:
             if active[i]:
                 self.out(f"t={t:.3f} cf{i} {uri} send_velocity_world_setpoint vx={v[0]:+.3f} vy={v[1]:+.3f} "
                          f"vz={v[2]:+.3f} m/s yawrate={YAW_RATE_DEG_S:g} deg/s")
+
+    def send_full_states(self, t: float, positions: np.ndarray, velocities: np.ndarray, active: np.ndarray) -> None:
+        for i, (uri, p, v) in enumerate(zip(self.uris, positions, velocities)):
+            if active[i]:
+                self.out(f"t={t:.3f} cf{i} {uri} send_full_state_setpoint pos=({p[0]:+.3f}, {p[1]:+.3f}, "
+                         f"{p[2]:+.3f}) m vel=({v[0]:+.3f}, {v[1]:+.3f}, {v[2]:+.3f}) m/s acc=0 level rates=0")
 
     def land(self, drones: Sequence[int], duration: float) -> None:
         for i in drones:
@@ -209,6 +224,14 @@ class CflibLink:
             if active[i]:
                 vx, vy, vz = (float(v) for v in velocities[i])
                 self.cfs[uri].commander.send_velocity_world_setpoint(vx, vy, vz, YAW_RATE_DEG_S)
+
+    def send_full_states(self, t: float, positions: np.ndarray, velocities: np.ndarray, active: np.ndarray) -> None:
+        for i, uri in enumerate(self.uris):
+            if active[i]:
+                pos, vel = [float(x) for x in positions[i]], [float(x) for x in velocities[i]]
+                # cflib: orientation [qx, qy, qz, qw], rates in deg/s
+                self.cfs[uri].commander.send_full_state_setpoint(pos, vel, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0],
+                                                                 0.0, 0.0, YAW_RATE_DEG_S)
 
     def land(self, drones: Sequence[int], duration: float) -> None:
         for i in drones:
@@ -279,6 +302,11 @@ def fly(bundle: Bundle, link: Link, mocap: MocapSource, *, plan: FlightPlan = Fl
     period = 1.0 / bundle.rate_hz
     steps, landed, events = 0, set(), []
     drone = bundle.manifest.get("drone", {})
+    full_state = drone.get("setpoint") == "full_state"
+    reference = None  # full-state setpoints: where the integrated command stands, per drone
+    if full_state:
+        log(f"the policy was trained on {drone.get('controller')}: streaming full-state setpoints along the "
+            f"integrated command (reference leash {float(drone['reference_leash']):g} m)")
     if drone.get("controller") == "geometric":
         log("warning: the policy was trained on the geometric controller, which the firmware does not have; "
             "the drones fly controller_pid (retrain on the default drone)")
@@ -305,7 +333,18 @@ def fly(bundle: Bundle, link: Link, mocap: MocapSource, *, plan: FlightPlan = Fl
                 link.land(new, plan.land_seconds)
                 landed.update(int(i) for i in new)
             active = ~out.land
-            link.send_velocities(now, out.velocity, active)
+            if full_state:
+                seen = np.isfinite(out.position).all(-1, keepdims=True)
+                if reference is None:
+                    reference = np.full_like(out.position, np.nan)
+                reference = np.where(np.isnan(reference) & seen, out.position, reference)
+                link.send_full_states(now, command.setpoint_position(reference, out.velocity, period), out.velocity,
+                                      active & np.isfinite(reference).all(-1))
+                ahead = command.advance_reference(reference, out.velocity, period, np.where(seen, out.position, 0.0),
+                                                  float(drone["reference_leash"]))
+                reference = np.where(seen, ahead, reference)
+            else:
+                link.send_velocities(now, out.velocity, active)
             steps += 1
             if len(landed) == n:
                 break

@@ -96,6 +96,7 @@ class StepResult:
     target: np.ndarray  # [..., n] index of each drone's current gate (or 0 for a goal)
     finished: np.ndarray  # [..., n] bool
     obs: np.ndarray  # [..., n, D] the observations the policy saw
+    position: np.ndarray  # [..., n, 3] where the drones are now, as the policy saw them (the estimate's present)
 
 
 class FlightController:
@@ -302,7 +303,8 @@ class FlightController:
 
         return StepResult(velocity=out(u), land=out(self._landing.copy()), hover=out(hover), events=events,
                           nominal=out(pol.nominal), intervened=out(pol.intervened > hover), gain=out(pol.gain),
-                          target=out(self._target.copy()), finished=out(self._finished.copy()), obs=out(obs))
+                          target=out(self._target.copy()), finished=out(self._finished.copy()), obs=out(obs),
+                          position=out(self._p_now.copy()))
 
     # ------------------------------------------------------------------ parts
     def _batched(self, x, tail: tuple[int, ...], name: str) -> np.ndarray:
