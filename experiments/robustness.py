@@ -40,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", default=",".join(map(str, NOISE_MM)), help="mm, comma-separated (must hold 5)")
     p.add_argument("--latency", default=",".join(map(str, LATENCY_MS)), help="ms, comma-separated (must hold 40)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"))
+    p.add_argument("--seed", type=int, default=None, help="episodes' seed (default: the evaluation seed)")
     from aswarm.flight import estimator
 
     estimator.add_arguments(p)
@@ -59,14 +60,16 @@ def main(argv: list[str] | None = None) -> int:
         for c in design(noise_mm, latency_ms):
             t0 = time.perf_counter()
             r = sitl.run_sitl(path, episodes=args.episodes, noise=c["noise_mm"] / 1000, latency_ms=c["latency_ms"],
-                              mass_scale=c["mass"], thrust_scale=c["thrust"], estimation=estimation)
+                              mass_scale=c["mass"], thrust_scale=c["thrust"], estimation=estimation,
+                              **({} if args.seed is None else {"seed": args.seed}))
             row = {"policy": name, **c, "episodes": r["episodes"], "success_rate": r["success_rate"],
                    "collision_rate": r["collision_rate"], "seconds": time.perf_counter() - t0}
             results.append(row)
             print(json.dumps(row), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "robustness.json").write_text(json.dumps(results, indent=1))
-    lines = [f"# Robustness in SITL ({args.episodes} episodes per cell, `python experiments/robustness.py`)", "",
+    seed = "" if args.seed is None else f", seed {args.seed}"
+    lines = [f"# Robustness in SITL ({args.episodes} episodes per cell{seed}, `python experiments/robustness.py`)", "",
              f"The runtime's velocity estimate: {estimation}", ""]
     for name in bundles:
         rows = [r for r in results if r["policy"] == name]
