@@ -184,7 +184,8 @@ class SwarmEnv:
         )
         hover_rpm = jnp.sqrt(p.cf.mass * cfg.cf.gravity / (4 * p.cf.kf))
         pid = mel = reference = None
-        hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
+        if cfg.controller != "geometric":  # the firmware's controllers start from the thrust that holds the drone
+            hover = firmware_pid.hover_thrust(p.cf.mass * cfg.cf.gravity, p.cf.kf / self._kf_nominal, p.pid)
         if cfg.controller == "pid":
             pid = firmware_pid.initial_state(drones.quat, drones.ang_vel, hover, p.pid)
         elif cfg.controller == "mellinger":
