@@ -720,6 +720,14 @@ def test_fly_streams_full_states_along_the_integrated_command_to_mellinger(synth
     pos, vel = _full_state_sends(synthetic, csv, leash=0.01)
     commanded = np.sum(vel[:-1, 0]) * period
     assert abs(commanded) < 0.05 and pos[-1, 0] - pos[0, 0] > 0.1
+    # A manifest that asks for full states without a leash is refused before take-off, in one line.
+    m = dict(synthetic.manifest)
+    m["drone"] = {**m["drone"], "setpoint": "full_state", "reference_leash": None}
+    lines = []
+    with pytest.raises(ValueError, match=r"invalid manifest drone.reference_leash=None: allowed: a number > 0"):
+        ffly.fly(fb.bundle_from(m, dict(synthetic.arrays)), ffly.DryRunLink(URIS.split(","), lines.append),
+                 ffly.ReplaySource(csv, 4), plan=ffly.FlightPlan(realtime=False), log=lines.append)
+    assert not any(line.startswith("takeoff") for line in lines)
 
 
 def test_fly_refuses_bad_input_and_stops_on_an_exception(synthetic, tmp_path, capsys):

@@ -305,6 +305,9 @@ def fly(bundle: Bundle, link: Link, mocap: MocapSource, *, plan: FlightPlan = Fl
     full_state = drone.get("setpoint") == "full_state"
     reference = None  # full-state setpoints: where the integrated command stands, per drone
     if full_state:
+        if not isinstance(drone.get("reference_leash"), (int, float)) or not drone["reference_leash"] > 0:
+            raise ValueError(f"invalid manifest drone.reference_leash={drone.get('reference_leash')!r}: allowed: a "
+                             "number > 0 (m) for full-state setpoints; export the bundle again")
         log(f"the policy was trained on {drone.get('controller')}: streaming full-state setpoints along the "
             f"integrated command (reference leash {float(drone['reference_leash']):g} m)")
     if drone.get("controller") == "geometric":
