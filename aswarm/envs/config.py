@@ -159,7 +159,7 @@ def legacy_drone_stored() -> dict:
 
 # EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
-               "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": 0.3}
+               "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash}
 
 
 def with_legacy_drone(env: dict) -> dict:
