@@ -585,6 +585,32 @@ def test_old_poses_pass_gates_when_the_drone_does_not_a_step_late(synthetic, mon
     assert switched["window"][0] == k_model + 1
 
 
+def test_pose_noise_at_a_gate_plane_counts_no_pass_until_the_drone_comes_from_before_it(synthetic, monkeypatch):
+    # Gate 0: centre (6, 0, 1), passage +y, half-opening 0.3. Drone 0 passes its plane 0.8 m to the side (outside the
+    # opening: no pass, as in the simulator), comes back to the middle of the opening from the far side and sits on
+    # the plane while its poses flicker ±3 mm across it: the simulator counts nothing there, nor may the runtime (it
+    # did: a ghost sent on to the next gate). Once the drone has been 2 cm before the plane, passing 1 cm beyond it
+    # through the opening counts.
+    monkeypatch.setattr(fc, "run_policy", lambda bundle, obs: fc.PolicyOutput(
+        nominal=np.zeros(obs.shape[:-1] + (3,)), u=np.zeros(obs.shape[:-1] + (3,)), gain=np.ones(obs.shape[:-1]),
+        intervened=np.zeros(obs.shape[:-1], bool), converged=np.ones(obs.shape[:-1], bool)))
+    ctl = fc.FlightController(synthetic, 4, estimation=estimator.EstimatorConfig(velocity="window"))
+    ctl.reset(gates=np.array(synthetic.manifest["course"]["gates"]))
+    assert tuple(ctl._gates[0, 0]) == (6.0, 0.0, 1.0, np.pi / 2)
+    rest = np.array([[0.0, -4.0, 1.0], [-2.0, -4.0, 1.0], [-4.0, -4.0, 1.0]])
+    path = ([(6.8, y, 1.0) for y in np.linspace(-0.5, 0.3, 9)]  # past the plane beside the frame
+            + [(x, 0.3, 1.0) for x in np.linspace(6.7, 6.0, 8)]  # round to the middle, on the far side
+            + [(6.0, y, 1.0) for y in (0.2, 0.1, 0.05, 0.01, 0.003, -0.001, 0.002, -0.003, 0.003, -0.002, 0.004)])
+    # Before the plane (armed), then crawling up to it with the same flicker: a pass needs 1 cm beyond the plane.
+    back = [(6.0, y, 1.0) for y in (-0.01, -0.025, -0.01, -0.005, 0.004, -0.002, 0.006, 0.003, 0.015, 0.1)]
+    targets = []
+    for k, p0 in enumerate(path + back):
+        out = ctl.step(np.vstack([p0, rest]), Q, np.full(4, 0.04 * k), now=0.04 * k)
+        targets.append(int(out.target[0]))
+    assert targets[:len(path)] == [0] * len(path)
+    assert targets[len(path):] == [0] * 8 + [1, 1]
+
+
 def test_command_accel_limit_of_the_bundle_ramps_every_command(synthetic):
     # The simulator's limit (EnvConfig.command_accel_limit): each command moves at most 5 m/s² / 25 Hz = 0.2 m/s
     # per axis from the last one sent, towards what the unlimited runtime sends (with the line-fit velocity its
