@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= race
 ARGS ?=
 
-.PHONY: install train test bench bench-train bench-flight paper-table lint clean
+.PHONY: install train test bench bench-train bench-flight paper-table safety-matrix lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ bench-flight: $(STAMP)
 
 paper-table: $(STAMP)
 	$(PY) experiments/paper_table.py $(ARGS)
+
+# make safety-matrix ARGS="--policy obstacles=runs/obstacles-m13": every cell of issue #13 (hours; re-run to resume)
+safety-matrix: $(STAMP)
+	$(PY) experiments/safety_matrix.py $(ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check aswarm tests experiments

@@ -133,18 +133,29 @@ class Agent:
         """theta [.., n, 2] = (penalty, gain) and attention weights [.., n, M + n - 1]."""
         return self.cbf.apply(params["cbf"], self.normalize(obs_norm, obs), hazard_mask(self.env.obs_layout, obs))
 
-    def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array):
-        """Apply the CBF safety filter (where the method has one) to commands [.., n, 3]."""
+    def filter_commands(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array) -> cbf_filter.FilterResult:
+        """The CBF safety filter's whole result on commands [.., n, 3] (its slack, convergence, active rows);
+        a method without a filter passes the commands through, with no slack, no row and nothing changed."""
         if not self.config.uses_filter:
             zeros = jnp.zeros(cmd.shape[:-1])
-            return cmd, zeros.astype(bool), zeros
+            return cbf_filter.FilterResult(u=cmd, slack=zeros, intervened=zeros.astype(bool), correction_norm=zeros,
+                                           active=jnp.zeros(cmd.shape[:-1] + (0,), bool),
+                                           converged=jnp.ones(cmd.shape[:-1], bool))
         if self.config.uses_attention:
             gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
         else:
             gain = jnp.full(cmd.shape[:-1], self.config.safety_filter.fixed_gain)
         ec = self.env.config
-        res = cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
-                                         self.config.safety_filter, ec.gate_half_opening, ec.gate_bar)
+        return cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
+                                          self.config.safety_filter, ec.gate_half_opening, ec.gate_bar)
+
+    def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array):
+        """Apply the CBF safety filter (where the method has one) to commands [.., n, 3].
+
+        Returns (filtered commands, intervened [.., n], correction norm [.., n] m/s: the training's reward
+        charges it); :meth:`filter_commands` has the rest of the filter's result (slack, convergence).
+        """
+        res = self.filter_commands(params, obs_norm, obs, cmd)
         return res.u, res.intervened, res.correction_norm
 
     def act(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:

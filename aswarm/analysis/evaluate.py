@@ -13,6 +13,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +38,17 @@ COLLISION_KINDS = KINDS[1:]  # obstacle, drone, gate, floor, bounds
 # Most episodes evaluated at once: a vmapped world holds its whole MJX state, and a million episodes in one
 # program ran out of memory. Above the 1000 of the published tables, so their numbers come from one program.
 EVAL_BATCH = 4096
+# m/s: a drone-step's filter QP counts as infeasible (no command satisfied every barrier row) when its shared
+# slack exceeds this. A feasible QP leaves a slack of ~1e-6 m/s per m/s of correction (the quadratic penalty,
+# rho = 1e6, see cbf_filter.filter_velocity), so corrections up to the 2 m/s command bound stay 50x below it.
+INFEASIBLE_SLACK = 1e-4
+
+
+class FilterStats(NamedTuple):
+    """The safety filter over the flying drone-steps of a rollout."""
+
+    intervention_rate: float  # share where the filter changed the command
+    infeasible_rate: float  # share where its QP had no command satisfying every row (slack > INFEASIBLE_SLACK)
 
 
 def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -50,12 +62,13 @@ def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
-                     batch: int = EVAL_BATCH):
+def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
+                              batch: int = EVAL_BATCH) -> tuple[dict, jax.Array, FilterStats]:
     """Run ``episodes`` worlds to their end with the deterministic, filtered policy.
 
-    Returns the metrics of each episode ([episodes] arrays) and per-step safety statistics. Episode i starts
-    from ``split(key, episodes)[i]``; at most ``batch`` worlds run at once (memory grows with them), so up to
+    Returns the metrics of each episode ([episodes] arrays), which episodes ended, and the filter's
+    :class:`FilterStats` over the drone-steps of worlds still running. Episode i starts from
+    ``split(key, episodes)[i]``; at most ``batch`` worlds run at once (memory grows with them), so up to
     ``batch`` episodes are one program, as they always were.
     """
     reset = jax.vmap(env.reset)
@@ -67,29 +80,33 @@ def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episode
         ended = jnp.zeros(keys.shape[0], bool)
 
         def body(carry, _):
-            s, rec, ended, interventions, flying = carry
+            s, rec, ended, interventions, infeasible, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
-            safe, intervened, _ = agent.safe_command(params, obs_norm, s.obs, cmd)
-            s = step(s, safe)
+            res = agent.filter_commands(params, obs_norm, s.obs, cmd)
+            s = step(s, res.u)
             first = (s.done > 0) & ~ended
             rec = jax.tree.map(lambda r, m: jnp.where(first, m, r), rec, s.metrics)
             live = ~ended
-            interventions = interventions + jnp.sum(intervened * live[:, None])
+            interventions = interventions + jnp.sum(res.intervened * live[:, None])
+            infeasible = infeasible + jnp.sum((res.slack > INFEASIBLE_SLACK) * live[:, None])
             flying = flying + jnp.sum(live) * env.num_agents
-            return (s, rec, ended | first, interventions, flying), None
+            return (s, rec, ended | first, interventions, infeasible, flying), None
 
-        init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()))
-        (_, rec, ended, interventions, flying), _ = jax.lax.scan(body, init, None, length=env.config.max_steps)
-        return rec, ended, interventions, flying
+        init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()))
+        (_, rec, ended, interventions, infeasible, flying), _ = jax.lax.scan(body, init, None,
+                                                                            length=env.config.max_steps)
+        return rec, ended, interventions, infeasible, flying
 
     if batch <= 0:
         raise ValueError(f"invalid batch={batch}: must be > 0")
     if episodes <= batch:
         def one(key):
-            rec, ended, interventions, flying = run(jax.random.split(key, episodes))
-            return rec, ended, interventions / jnp.maximum(flying, 1.0)
+            rec, ended, interventions, infeasible, flying = run(jax.random.split(key, episodes))
+            per = jnp.maximum(flying, 1.0)
+            return rec, ended, interventions / per, infeasible / per
 
-        return jax.jit(one)(key)
+        rec, ended, intervention_rate, infeasible_rate = jax.jit(one)(key)
+        return rec, ended, FilterStats(intervention_rate, infeasible_rate)
     keys = jax.random.split(key, episodes)
     run_batch = jax.jit(run)
     parts = [run_batch(keys[i:i + batch]) for i in range(0, episodes, batch)]
@@ -97,8 +114,17 @@ def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episode
     ended = np.concatenate([np.asarray(p[1]) for p in parts])
     # Counts summed in float64 on the host: float32 stops counting drone-steps exactly past 2**24.
     interventions = sum(float(p[2]) for p in parts)
-    flying = sum(float(p[3]) for p in parts)
-    return rec, ended, interventions / max(flying, 1.0)
+    infeasible = sum(float(p[3]) for p in parts)
+    flying = max(sum(float(p[4]) for p in parts), 1.0)
+    return rec, ended, FilterStats(interventions / flying, infeasible / flying)
+
+
+def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
+                     batch: int = EVAL_BATCH):
+    """(metrics of each episode, which ended, filter intervention rate): :func:`rollout_with_filter_stats`
+    without the other filter statistics."""
+    rec, ended, stats = rollout_with_filter_stats(agent, params, obs_norm, env, episodes, key, batch)
+    return rec, ended, stats.intervention_rate
 
 
 def load(checkpoint_dir: str | Path):
@@ -154,12 +180,13 @@ def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
     return config, Agent.build(config, env), restored
 
 
-def summarize(rec: dict, intervention_rate: float = 0.0) -> dict:
+def summarize(rec: dict, intervention_rate: float = 0.0, infeasible_rate: float | None = None) -> dict:
     """The report's figures from per-episode metrics ``rec`` ({name: [episodes]}, as ``SwarmEnv._metrics``).
 
     Rates come with 95 % Wilson intervals (``*_ci95``). ``mission_time`` is the mean over *successful*
     episodes only (None when none succeeded): a failed episode has no mission time. Every other figure is
-    the mean over all episodes; ``min_clearance_worst`` is the minimum.
+    the mean over all episodes; ``min_clearance_worst`` is the minimum. ``filter_infeasible_rate`` is None
+    where the caller did not measure it (the flight runtime does not report the filter's slack).
     """
     rec = {k: np.asarray(v, dtype=np.float64) for k, v in rec.items()}
     n = int(np.size(rec["success"]))
@@ -179,6 +206,7 @@ def summarize(rec: dict, intervention_rate: float = 0.0) -> dict:
         out[name] = float(rec[name].mean())
     out["min_clearance_worst"] = float(rec["min_clearance"].min())
     out["filter_intervention_rate"] = float(intervention_rate)
+    out["filter_infeasible_rate"] = None if infeasible_rate is None else float(infeasible_rate)
     return out
 
 
@@ -193,12 +221,13 @@ def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: i
         config = dataclasses.replace(config, method=with_method)
         agent = Agent.build(config, agent.env)
     env = agent.env
-    rec, ended, intervention_rate = rollout_episodes(agent, restored["params"], restored["obs_norm"], env, episodes,
-                                                     jax.random.PRNGKey(seed))
+    rec, ended, stats = rollout_with_filter_stats(agent, restored["params"], restored["obs_norm"], env, episodes,
+                                                  jax.random.PRNGKey(seed))
     out = {"checkpoint": str(checkpoint_dir), "method": config.method, "scenario": env.config.scenario,
            "num_agents": env.num_agents, "episodes": episodes, "seed": seed, "trained_updates": int(restored["update"]),
            "env_overrides": sorted(env_overrides or []), "episodes_ended": int(np.sum(np.asarray(ended)))}
-    out.update(summarize({k: np.asarray(v) for k, v in rec.items()}, float(intervention_rate)))
+    out.update(summarize({k: np.asarray(v) for k, v in rec.items()}, float(stats.intervention_rate),
+                         float(stats.infeasible_rate)))
     return out
 
 
@@ -260,10 +289,14 @@ def format_table(r: dict) -> str:
               if f"collision_{kind}_rate" in r]
     for name, unit in (("drone_collision_rate", ""), ("progress", ""), ("min_clearance", "m"),
                        ("min_clearance_worst", "m"), ("mean_separation", "m"), ("mission_time", "s"),
-                       ("mean_speed", "m/s"), ("filter_intervention_rate", "")):
+                       ("mean_speed", "m/s"), ("filter_intervention_rate", ""), ("filter_infeasible_rate", "")):
+        if name == "filter_infeasible_rate" and name not in r:  # a report written before it was measured
+            continue
         v = r.get(name)
         if name.startswith("min_clearance") and v is not None and v >= 999:
             shown = "   (none)"
+        elif v is None and name == "filter_infeasible_rate":
+            shown = "   (not measured)"
         elif v is None:
             shown = "   (no successful episode)"
         else:
