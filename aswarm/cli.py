@@ -34,7 +34,7 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
     for name, sc in SCENARIOS.items():
         cfg = registry.preset(name)
         geo = scenarios.geometry(cfg)
-        moving = f"{cfg.min_moving}-{cfg.num_moving}" if cfg.num_moving else "0"
+        moving = f"{cfg.min_moving}-{cfg.most_moving}" if cfg.num_moving else "0"
         task = f"{cfg.num_gates} gates in order" if sc.kind == "track" else "goal point"
         length = f"{scenarios.track_length(cfg):.1f} m" if sc.kind == "track" else "-"
         rows.append((name, str(cfg.num_agents), str(cfg.num_obstacles), moving, task, length,

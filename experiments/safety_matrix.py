@@ -10,10 +10,9 @@
 A cell is a scenario with env overrides, flown by the policy of the kind it needs (``--policy KIND=RUN``, or
 ``--policy CELL=RUN`` for one cell; ``race`` defaults to ``pretrained``). A cell whose policy was not given is
 listed as not run; one whose policy observes another layout (other numbers of cylinders or neighbours) is listed
-with the reason. Dynamic cells hold exactly k moving cylinders (``num_moving = min_moving = k``), so they observe
-k cylinders: a policy trained on the ``dynamic`` preset (3) fits dynamic-3 and dynamic-3-fast only; give
-dynamic-1 and dynamic-2 their own with ``--policy dynamic-1=RUN``. "fast" is 1.5x the default speed of the moving
-cylinders (the same amplitude over a period 1.5x shorter).
+with the reason. Dynamic cells move exactly k of the ``dynamic`` preset's 3 cylinder slots (``min_moving =
+max_moving = k``; the others are absent), so one policy trained on the preset (1 to 3 moving) flies all six. "fast"
+is 1.5x the default speed of the moving cylinders (the same amplitude over a period 1.5x shorter).
 
 The headline cells (race, dynamic-3, obstacles-16) are also flown in SITL (``aswarm sitl``: the numpy flight
 runtime on poses, with 2 mm of position noise and 40 ms of latency), from a bundle exported once per policy into
@@ -59,6 +58,7 @@ RACE_SLOTS = 8  # the race's static cylinders
 DYNAMIC_MOVING = (1, 2, 3)
 COLLISION_KINDS = ("obstacle", "drone", "gate", "floor", "bounds")  # evaluate.COLLISION_KINDS, without JAX
 SHIPPED = "pretrained"
+DEFAULT_POLICIES = {"race": SHIPPED, "dynamic": "pretrained:dynamic"}  # where shipped
 # A policy's kind: what it must have been trained on to fit its cells' observation layout.
 KINDS = {
     "race": f"a race policy: 4 drones, {RACE_SLOTS} static cylinders (default: {SHIPPED}, the shipped one)",
@@ -68,7 +68,7 @@ KINDS = {
     "obstacles-swarm": "an obstacles policy observing its K nearest drones (--env max_neighbours=K); SITL flies "
                        "obstacles-16 only with one trained on 16 drones (a bundle flies the swarm it was trained for)",
     "lab": "a lab policy: 2 drones, 3 cylinders",
-    "dynamic": "a dynamic policy: it observes as many cylinders as it was trained to move (the preset: 3)",
+    "dynamic": "a dynamic policy: trained on the dynamic preset (3 cylinder slots, 1 to 3 of them moving)",
 }
 
 
@@ -83,8 +83,9 @@ class Cell:
 
 
 def _moving(k: int, fast: bool) -> tuple[str, ...]:
+    """Exactly k moving cylinders (of the scenario's slots), at the default or the fast speed."""
     period = (f"moving_period={EnvConfig.moving_period / FAST!r}",) if fast else ()
-    return (f"num_moving={k}", f"min_moving={k}") + period
+    return (f"min_moving={k}", f"max_moving={k}") + period
 
 
 def _drones(n: int) -> tuple[str, ...]:
@@ -98,7 +99,7 @@ CELLS: tuple[Cell, ...] = (
     *(Cell(f"dynamic-{k}", "dynamic", "dynamic", _moving(k, False),
            HEADLINE_EPISODES if k == 3 else CELL_EPISODES, headline=k == 3) for k in DYNAMIC_MOVING),
     *(Cell(f"dynamic-{k}-fast", "dynamic", "dynamic", _moving(k, True)) for k in DYNAMIC_MOVING),
-    Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}",) + _moving(2, False)),
+    Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}", "num_moving=2") + _moving(2, False)),
     Cell("race-8", "race-swarm", "race", _drones(8)),
     Cell("race-16", "race-swarm", "race", _drones(16)),
     Cell("obstacles-8", "obstacles-swarm", "obstacles", _drones(8)),
@@ -117,8 +118,8 @@ class _Parser(argparse.ArgumentParser):
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = _Parser(prog="safety_matrix.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policy", action="append", default=[], metavar="KIND=RUN",
-                   help=f"a run folder (or '{SHIPPED}') for a kind ({', '.join(KINDS)}) or a single cell "
-                        "(repeatable; a cell's own wins over its kind's)")
+                   help=f"a run folder (or a shipped policy, '{SHIPPED}[:NAME]') for a kind ({', '.join(KINDS)}) "
+                        "or a single cell (repeatable; a cell's own wins over its kind's)")
     p.add_argument("--only", default=None, metavar="CELL[,CELL]",
                    help=f"cells to run (a headline cell with its SITL row), from {', '.join(CELL_NAMES)}")
     p.add_argument("--quick", action="store_true", help=f"{QUICK_EPISODES} episodes a cell, cached apart: CI")
@@ -126,7 +127,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=MATRIX_SEED, help=f"the episodes' seed (default {MATRIX_SEED}: unseen)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"), help="default: experiments/results")
     args = p.parse_args(argv)
-    policies = {"race": SHIPPED}
+    from aswarm.analysis.evaluate import is_shipped, shipped
+
+    # The shipped policies fly their kinds unless told otherwise (pretrained:dynamic once it ships).
+    policies = {kind: name for kind, name in DEFAULT_POLICIES.items() if name in shipped()}
     for item in args.policy:
         key, sep, run = item.partition("=")
         if not sep or not run:
@@ -134,10 +138,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if key not in KINDS and key not in CELL_NAMES:
             p.error(f"invalid --policy {item!r}: unknown kind {key!r}; allowed: {', '.join(KINDS)} "
                     f"(or a cell: {', '.join(CELL_NAMES)})")
-        if run != SHIPPED and not Path(run).is_dir():
+        if is_shipped(run) and run not in shipped() or not is_shipped(run) and not Path(run).is_dir():
             p.error(f"invalid --policy {item!r}: no run folder {run!r}; allowed: a folder from `aswarm train` or "
-                    f"'{SHIPPED}'")
-        policies[key] = run if run == SHIPPED else str(Path(run))  # ./runs/x and runs/x share their cells
+                    f"a shipped policy ({', '.join(shipped())})")
+        policies[key] = run if is_shipped(run) else str(Path(run))  # ./runs/x and runs/x share their cells
     args.policies = policies
     if args.only is not None:
         only = [c.strip() for c in args.only.split(",") if c.strip()]
@@ -167,9 +171,9 @@ def policy_of(cell: Cell, policies: dict[str, str]) -> tuple[str, str] | None:
 
 def newest_step(run: str) -> int | None:
     """The newest checkpoint of a run folder (``pretrained`` included): a retrained folder is another policy."""
-    from aswarm.analysis.evaluate import PRETRAINED
+    from aswarm.analysis.evaluate import run_folder
 
-    folder = (PRETRAINED if run == SHIPPED else Path(run)) / "checkpoints"
+    folder = run_folder(run) / "checkpoints"
     steps = [int(d.name) for d in folder.iterdir() if d.name.isdigit()] if folder.is_dir() else []
     return max(steps, default=None)
 

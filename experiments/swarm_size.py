@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from aswarm.analysis import bench, evaluate
     from aswarm.training import checkpoint
 
-    config = checkpoint.load_config(evaluate.PRETRAINED if args.checkpoint == "pretrained" else Path(args.checkpoint))
+    config = checkpoint.load_config(evaluate.run_folder(args.checkpoint))
     trained = make_env(config).config
     k = trained.max_neighbours
     if not k:

@@ -171,6 +171,30 @@ def test_cylinder_row_hand_derived():
     np.testing.assert_allclose(res.u, [-2.0, 0.0, 0.0], atol=1e-5)
 
 
+def test_moving_cylinder_rows_hold_against_the_acceleration_bound_hand_derived():
+    """A cylinder (its look-ahead point) at the origin moving +x at 1 m/s, acceleration bound 2 m/s², look-ahead
+    lag 0.3 s: n · u ≥ n · v_c + τ a − γ h, the worst the cylinder can do within the bound before the lagging
+    drone's look-ahead point answers."""
+    R, r, margin, gamma, lag, a = 0.2, 0.05, 0.05, 1.0, 0.3, 2.0
+    vel, accel = jnp.array([[1.0, 0.0]]), jnp.array([a])
+    one = dict(drone_radius=r, margin=margin)
+    d = np.sqrt(0.5)
+    # Ahead of it and aside: d = (0.5, 0.5), so n = (1, 1)/√2, h = √0.5 − 0.3.
+    con = cylinder_rows(jnp.array([0.5, 0.5, 1.0]), jnp.zeros((1, 2)), jnp.array([R]), vel, jnp.ones(1, bool),
+                        gamma, motion=(accel, lag), **one)
+    np.testing.assert_allclose(con.h, [d - 0.3], atol=1e-6)
+    np.testing.assert_allclose(con.A, [[d, d, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(con.b, [d * 1.0 + lag * a - gamma * (d - 0.3)], atol=1e-6)
+    # Hovering there, the filter moves the drone away along n at exactly b (the closest command to 0).
+    res = single_filter(jnp.zeros(3), con.A, con.b, con.mask, 2.0)
+    np.testing.assert_allclose(res.u, float(con.b[0]) * np.array([d, d, 0.0]), atol=1e-5)
+    # A static cylinder (velocity and bound 0) keeps the row it has without motion.
+    still = [cylinder_rows(jnp.array([0.5, 0.5, 1.0]), jnp.zeros((1, 2)), jnp.array([R]), jnp.zeros((1, 2)),
+                           jnp.ones(1, bool), gamma, motion=m, **one) for m in (None, (jnp.zeros(1), lag))]
+    for x, y in zip(*still):
+        np.testing.assert_allclose(x, y, atol=1e-7)
+
+
 def test_neighbour_rows_split_the_pair_condition():
     rng = np.random.default_rng(6)
     p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
@@ -325,6 +349,72 @@ def test_both_solvers_and_the_reference_match_osqp_on_random_instances():
     assert solved >= 40  # OSQP solved and polished (nearly) every instance: the check did check
 
 
+def _best_margin(A, b, mask, u_max) -> float:
+    """max over the box of the smallest margin min_j (â_j · u − b̂_j) (an LP): < 0 exactly when no command in the
+    box satisfies every row, and then its negative is the least worst violation any command can have."""
+    from scipy.optimize import linprog
+
+    nrm = np.linalg.norm(A, axis=1)
+    keep = mask & (nrm > 1e-9)
+    A_hat, b_hat = A[keep] / nrm[keep, None], b[keep] / nrm[keep]
+    # variables (u, t): maximise t s.t. t - â_j · u <= -b̂_j
+    res = linprog(c=[0, 0, 0, -1], A_ub=np.hstack([-A_hat, np.ones((len(b_hat), 1))]), b_ub=-b_hat,
+                  bounds=[(-u_max, u_max)] * 3 + [(None, None)], method="highs")
+    assert res.status == 0
+    return -res.fun
+
+
+def test_the_backup_engages_exactly_when_no_command_satisfies_every_row():
+    """The filter's defined behaviour when its rows conflict: its shared slack is then the least worst violation any
+    command in the box can have (every row gives the same amount, none is sacrificed), and 0 otherwise; the
+    evaluation counts a drone-step as a backup step when the slack exceeds INFEASIBLE_SLACK. Checked against an LP
+    (scipy's HiGHS) that finds the best margin, for both solvers."""
+    from aswarm.analysis.evaluate import INFEASIBLE_SLACK
+
+    rng = np.random.default_rng(11)
+    P = 96
+    A = rng.normal(size=(P, M_ROWS, 3))
+    A /= np.linalg.norm(A, axis=-1, keepdims=True)
+    b = np.einsum("pmk,pk->pm", A, rng.uniform(-1.5, 1.5, (P, 3))) + rng.normal(-0.2, 0.3, (P, M_ROWS))
+    mask = rng.uniform(size=(P, M_ROWS)) < 0.85
+    u_nom = rng.uniform(-3.0, 3.0, (P, 3))
+    margin = np.array([_best_margin(A[k], b[k], mask[k], U_MAX) for k in range(P)])
+    clear = np.abs(margin) > 1e-3  # leave out the knife edge, where float32 rounding decides
+    infeasible = margin < 0
+    assert 20 <= np.sum(infeasible & clear) and 20 <= np.sum(~infeasible & clear)  # both sides are tested
+    s_jax = np.asarray(batched_filter(*stack(list(zip(u_nom, A, b, mask)))).slack, float)
+    s_np = np_cbf.filter_velocity(u_nom, A, b, mask, U_MAX).slack
+    # The quadratic penalty leaves s = Σλ/ρ ~ 1e-5 where rows bind but all hold: well under the threshold.
+    for s, tol in ((s_np, 5e-5), (s_jax, 2e-4)):
+        np.testing.assert_array_equal((s > INFEASIBLE_SLACK)[clear], infeasible[clear])
+        np.testing.assert_allclose(s[clear], np.maximum(-margin, 0.0)[clear], atol=tol)
+
+
+def test_weighted_slack_lets_the_static_rows_give_way_less_hand_derived():
+    """u_z ≥ 0 (a floor at the drone, weight 0.1) against −u_z ≥ 1 (a hazard pushing down, weight 1): no command
+    satisfies both. Spread evenly, each gives 0.5 m/s; weighted, u_z + 0.1 s ≥ 0 and −u_z + s ≥ 1 give
+    s = 1/1.1 and u_z = −s/10: the floor gives 0.09 m/s, the hazard 0.91."""
+    A = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    b, mask, w = np.array([0.0, 1.0]), np.ones(2, bool), np.array([0.1, 1.0])
+    s = 1 / 1.1
+    even = np_cbf.filter_velocity(np.zeros(3), A, b, mask, U_MAX)
+    np.testing.assert_allclose(even.u, [0.0, 0.0, -0.5], atol=1e-5)
+    weighted = np_cbf.filter_velocity(np.zeros(3), A, b, mask, U_MAX, slack_weight=w)
+    np.testing.assert_allclose(weighted.u, [0.0, 0.0, -s / 10], atol=1e-5)
+    np.testing.assert_allclose(weighted.slack, s, atol=1e-5)
+    res = single_filter(jnp.zeros(3), jnp.asarray(A), jnp.asarray(b), jnp.asarray(mask), U_MAX,
+                        slack_weight=jnp.asarray(w))
+    np.testing.assert_allclose(res.u, [0.0, 0.0, -s / 10], atol=1e-4)
+    # Random problems: both solvers find the same command with the same weights.
+    rng = np.random.default_rng(5)
+    instances = [random_instance(rng, feasible=k % 2 == 0) for k in range(32)]
+    w = rng.uniform(0.05, 1.0, M_ROWS)
+    u_np = np_cbf.filter_velocity(*(np.stack(x) for x in zip(*instances)), U_MAX, slack_weight=w).u
+    u_jax = jax.jit(jax.vmap(lambda u, A, b, m: filter_velocity(u, A, b, m, U_MAX, slack_weight=w).u))(
+        *stack(instances))
+    np.testing.assert_allclose(np.asarray(u_jax), u_np, atol=2e-4)
+
+
 # ---------------------------------------------------------------- rows from observations
 def _random_obs(rng, layout, lead):
     """Raw observations [lead..., D] with valid presence flags, unit (or absent) gate normals and positive
@@ -381,6 +471,17 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
         u_jax = jax.jit(lambda o, c, g: filter_from_obs(layout, o, c, g, U_MAX, 0.06, safety, 0.3, 0.05).u)(
             jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain))
     np.testing.assert_allclose(np.asarray(u_jax), u_np, atol=1e-9)
+    # With the cylinders' acceleration bounds (per swarm [2, M]), a look-ahead and weighted slack: the same again
+    # (and the bounds change the commands: they are used).
+    moving = dataclasses.replace(safety, lookahead_xy=0.3, lookahead_z=0.2, hazard_accel=True, static_slack=0.1)
+    accel = rng.uniform(0.0, 3.0, (2, layout.num_cylinders))
+    res_np = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, moving, 0.3, 0.05, accel)
+    plain = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, moving, 0.3, 0.05)
+    assert np.abs(res_np.u - plain.u).max() > 1e-3
+    with jax.enable_x64(True):
+        u_jax = jax.jit(lambda o, c, g, a: filter_from_obs(layout, o, c, g, U_MAX, 0.06, moving, 0.3, 0.05, a).u)(
+            jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel))
+    np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
 
 
 def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():
@@ -459,7 +560,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
     assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False, lookahead_scale=1.0,
-                                                    margin=0.1)
+                                                    margin=0.1, hazard_accel=False, static_slack=1.0)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).

@@ -178,6 +178,17 @@ def test_layouts_leave_every_gap_between_cylinders_wide_enough_for_the_filter():
             assert np.mean(loose < 0.32) > 0.1
 
 
+def test_max_moving_fixes_how_many_of_the_slots_move():
+    def moving_counts(**overrides):
+        env = envs.make("dynamic", **overrides)
+        lay = _layouts(env)
+        return np.sum(np.asarray(lay.cyl_present & (lay.cyl_amplitude > 0)), axis=1)
+
+    assert set(moving_counts().tolist()) == {1, 2, 3}  # the preset: 1 to 3 of its 3 slots
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(moving_counts(min_moving=k, max_moving=k), k)
+
+
 def test_reaching_the_goal_finishes_with_success_metrics():
     env = envs.make("hover", layout_jitter=0.0)
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
@@ -270,6 +281,10 @@ def test_cost_rises_inside_the_safety_margin():
         ("obstacles", {"min_obstacle_gap": -0.1}, r"invalid min_obstacle_gap=-0.1: must be >= 0"),
         ("race", {"command_rate_penalty": -0.5}, r"invalid command_rate_penalty=-0.5: must be >= 0"),
         ("race", {"command_accel_limit": -3.0}, r"invalid command_accel_limit=-3.0: must be >= 0"),
+        ("dynamic", {"max_moving": 4},
+         r"invalid max_moving=4: allowed: -1 \(num_moving\) or min_moving=1 to num_moving=3"),
+        ("dynamic", {"min_moving": 2, "max_moving": 1},
+         r"invalid max_moving=1: allowed: -1 \(num_moving\) or min_moving=2"),
     ],
 )
 def test_bad_config_is_a_clear_error(name, overrides, message):

@@ -188,6 +188,11 @@ def test_unreadable_checkpoints_give_a_clear_error(tmp_path, capsys):
     if not evaluate.PRETRAINED.exists():
         with pytest.raises(checkpoint.CheckpointError, match="pretrained policy is missing"):
             export.export("pretrained", tmp_path / "b")
+    with pytest.raises(checkpoint.CheckpointError, match=r"unknown shipped policy 'pretrained:nope': allowed: "
+                                                         r"pretrained, pretrained:"):
+        export.export("pretrained:nope", tmp_path / "b")
+    assert "pretrained:race-geometric" in evaluate.shipped()
+    assert evaluate.run_folder("pretrained:race-geometric") == evaluate.PRETRAINED_GEOMETRIC
     assert cli.main(["export", "--checkpoint", str(tmp_path / "nope"), "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("aswarm export: error:") and "\n" not in err

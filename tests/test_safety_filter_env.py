@@ -1,5 +1,7 @@
 """The CBF filter in closed loop with the simulator, built from observations only."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -179,3 +181,72 @@ def test_largest_default_gain_is_safe_at_full_speed():
     s = _run(env, s, jnp.array([[env.config.max_speed, 0.0, 0.0]]), True, gain=cfg.gain_max,
              margin=cfg.margin)
     assert not bool(s.tracker.collided[0])
+
+
+def _fitted_filter(env, safety: SafetyFilterConfig):
+    c = env.config
+    return jax.jit(lambda o, u, a: cbf_filter.filter_from_obs(
+        env.obs_layout, o, u, jnp.full(o.shape[:-1], safety.gain_max), c.max_speed, c.cf.collision_radius, safety,
+        c.gate_half_opening, c.gate_bar, a))
+
+
+def _fly(env, state, command, filt, seconds):
+    """Constant ``command``, filtered by ``filt`` (None: not), for ``seconds``: (state, smallest cylinder
+    clearance seen)."""
+    step = jax.jit(env.step)
+    lowest = np.inf
+    for _ in range(round(seconds * env.config.policy_freq)):
+        state = step(state, command if filt is None else filt(state.obs, command, env.cylinder_accel(state)).u)
+        lowest = min(lowest, float(env.obs_layout.split(state.obs)[1][0, 0, 2]))
+        if state.done:
+            break
+    return state, lowest
+
+
+@pytest.mark.parametrize("hazard_accel", [True, False])
+def test_a_cylinder_about_to_accelerate_at_a_hovering_drone_is_escaped_only_with_its_bound(hazard_accel):
+    """The dynamic preset's cylinder (0.8 m amplitude, 4 s period: up to 1.26 m/s and 1.97 m/s²) at the end of its
+    sweep, 0.2 m from a hovering drone on its path: it is at rest but about to accelerate at its bound towards the
+    drone. The rows of the velocity alone see a still cylinder until it moves, and the lagging drone is caught;
+    with the bound (τ a = 0.34 s x 1.97 m/s² of extra retreat) it leaves in time."""
+    env = _make("obstacles", num_agents=1, num_obstacles=0, num_moving=1, min_moving=1, layout_jitter=0.0)
+    c = env.config
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    p = np.asarray(s.layout.start_pos[0])
+    at = p[0] - (0.2 + c.obstacle_radius + c.cf.collision_radius)  # the cylinder's centre now: its sweep's -x end
+    s = s.replace(layout=s.layout.replace(
+        cyl_center=jnp.array([[at + c.moving_amplitude, p[1]]]), cyl_axis=jnp.array([[1.0, 0.0]]),
+        cyl_phase=jnp.array([-np.pi / 2]), cyl_amplitude=jnp.array([c.moving_amplitude]),
+        cyl_present=jnp.array([True])))
+    s = _place(env, s, p)
+    np.testing.assert_allclose(env.cylinder_accel(s), [c.moving_amplitude * (2 * np.pi / c.moving_period) ** 2])
+    safety = dataclasses.replace(_fitted(env), hazard_accel=hazard_accel)
+    s, lowest = _fly(env, s, jnp.zeros((1, 3)), _fitted_filter(env, safety), seconds=4.0)
+    if hazard_accel:
+        assert not bool(s.tracker.collided[0]) and lowest > 0.05
+    else:
+        assert int(s.tracker.collision_kind[0]) == col.OBSTACLE
+
+
+@pytest.mark.parametrize("use_filter", [True, False])
+def test_a_drone_flying_at_2_m_s_at_a_cylinder_stops_short_of_it(use_filter):
+    """Relative degree 2: the firmware drone already at 2 m/s (the speed limit), 1 m from a cylinder's surface,
+    commanded on at it. The fitted filter's look-ahead rows brake it in time, at 20 degrees of tilt at most."""
+    env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    c = env.config
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    p = np.asarray(s.layout.start_pos[0])
+    s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.0 + c.obstacle_radius
+                                                                  + c.cf.collision_radius, p[1]]])))
+    drones = DroneState(pos=jnp.asarray([p]), quat=jnp.array([[1.0, 0.0, 0.0, 0.0]]),
+                        vel=jnp.array([[2.0, 0.0, 0.0]]), ang_vel=jnp.zeros((1, 3)))
+    s = s.replace(data=set_drone_state(s.data, drones),
+                  obs=jax.jit(env._observe)(drones, s.layout, s.tracker, jnp.zeros(())))
+    cmd = jnp.array([[2.0, 0.0, 0.0]])
+    if use_filter:
+        end, lowest = _fly(env, s, cmd, _fitted_filter(env, _fitted(env)), seconds=2.0)
+        assert not bool(end.tracker.collided[0]) and lowest > 0.0
+        assert float(jnp.linalg.norm(end.obs[0, env.obs_layout.own_slices["vel"]])) < 0.2  # stopped there
+    else:
+        end, _ = _fly(env, s, cmd, None, seconds=2.0)
+        assert int(end.tracker.collision_kind[0]) == col.OBSTACLE

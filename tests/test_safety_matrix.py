@@ -21,13 +21,15 @@ def _module():
 def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
     mod = _module()
     out = tmp_path / "results"
-    # race (4 drones, the shipped policy, also in SITL), race-moving2 (10 cylinders: the shipped policy does not fit)
-    # and obstacles (no policy given): every kind of row in one short run.
-    argv = ["--quick", "--episodes", "2", "--only", "race,race-moving2,obstacles", "--policy", "race-moving=pretrained",
-            "--out", str(out)]
+    # race (4 drones, the shipped policy, also in SITL), race-moving2 (10 cylinders: the shipped policy does not fit),
+    # obstacles (no policy given) and dynamic-1 (the shipped dynamic policy by default, 1 of its 3 slots moving):
+    # every kind of row in one short run.
+    argv = ["--quick", "--episodes", "2", "--only", "race,race-moving2,obstacles,dynamic-1", "--policy",
+            "race-moving=pretrained", "--out", str(out)]
     assert mod.main(argv) == 0
     err = capsys.readouterr().err
-    assert "cell 1/4 race: 2 episodes with pretrained" in err and "cell 4/4 race (SITL)" in err
+    assert "cell 1/5 race: 2 episodes with pretrained" in err and "cell 5/5 race (SITL)" in err
+    assert "dynamic-1: 2 episodes with pretrained:dynamic" in err
     doc = json.loads((out / "safety_matrix_quick.json").read_text())
     rows = {(r["cell"], r["mode"]): r for r in doc["cells"]}
     assert len(rows) == len(mod.CELLS) + sum(c.headline for c in mod.CELLS)
@@ -47,10 +49,11 @@ def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
     md = (out / "safety_matrix_quick.md").read_text()
     assert "| race | `race` | pretrained | 2 |" in md
     assert "not run: no obstacles policy (--policy obstacles=RUN)" in md
-    assert "| dynamic-1-fast | `dynamic` num_moving=1 min_moving=1 moving_period=2.667 |" in md
+    assert "| dynamic-1-fast | `dynamic` min_moving=1 max_moving=1 moving_period=2.667 |" in md
     assert not (out / "safety_matrix.md").exists() and not (out / "cells").exists()  # quick never mixes with full
     cells = {p.name: p.stat().st_mtime_ns for p in (out / "cells-quick").iterdir()}
-    assert set(cells) == {"race.json", "race-sitl.json"}  # only finished cells are kept
+    assert set(cells) == {"race.json", "race-sitl.json", "dynamic-1.json"}  # only finished cells are kept
+    assert rows[("dynamic-1", "sim")]["status"] == "done"
     bundle = (out / "bundles" / "race" / "manifest.json").stat().st_mtime_ns
 
     # A re-run reuses the finished cells (and the bundle) instead of flying them again.
@@ -84,12 +87,12 @@ def test_cells_of_the_issue():
     assert len(by) == len(mod.CELLS) == 16
     assert {n for n, c in by.items() if c.headline} == {"race", "dynamic-3", "obstacles-16"}
     assert {n for n, c in by.items() if c.episodes == mod.HEADLINE_EPISODES} == {"race", "dynamic-3", "obstacles-16"}
-    assert by["dynamic-2"].overrides == ("num_moving=2", "min_moving=2")
+    assert by["dynamic-2"].overrides == ("min_moving=2", "max_moving=2")
     period = float(by["dynamic-2-fast"].overrides[-1].split("=")[1])
     assert period * 1.5 == pytest.approx(mod.EnvConfig.moving_period)
-    assert by["race-moving2"].overrides == ("num_obstacles=8", "num_moving=2", "min_moving=2")
+    assert by["race-moving2"].overrides == ("num_obstacles=8", "num_moving=2", "min_moving=2", "max_moving=2")
     assert by["obstacles-64"].overrides == ("num_agents=64",)
-    # A cell's own policy wins over its kind's (a dynamic-1 policy observes 1 cylinder, the preset's 3).
+    # A cell's own policy wins over its kind's.
     policies = {"dynamic": "runs/a", "dynamic-1": "runs/b"}
     assert mod.policy_of(by["dynamic-1"], policies) == ("dynamic-1", "runs/b")
     assert mod.policy_of(by["dynamic-2"], policies) == ("dynamic", "runs/a")
@@ -100,6 +103,8 @@ def test_cells_of_the_issue():
     (["--only", "race,nope"], "invalid --only 'race,nope': unknown cell 'nope'; allowed: race, obstacles, lab,"),
     (["--policy", "swarm=pretrained"], "unknown kind 'swarm'; allowed: race, race-moving, race-swarm,"),
     (["--policy", "lab=/no/such/run"], "no run folder '/no/such/run'"),
+    (["--policy", "lab=pretrained:nope"], "no run folder 'pretrained:nope'; allowed: a folder from `aswarm train` or "
+                                          "a shipped policy (pretrained, pretrained:"),
     (["--policy", "lab"], "invalid --policy 'lab': allowed: KIND=RUN"),
     (["--episodes", "0"], "invalid --episodes 0: must be > 0"),
 ])

@@ -180,12 +180,13 @@ def _active_set_loop(x0: list, cols: list, h: jax.Array, valid: jax.Array, max_i
 
 def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Array,
                     u_max: float | jax.Array, *, rho: float = 1e6, max_iter: int = 16,
-                    tol: float = 1e-6) -> FilterResult:
+                    tol: float = 1e-6, slack_weight=None) -> FilterResult:
     """Closest velocity to ``u_nom`` satisfying ``A u ≥ b`` (rows where ``mask``) and ``|u_k| ≤ u_max``.
 
     u_nom [3]; A [m, 3]; b [m]; mask [m] bool; u_max scalar or [3]. Rows are normalised to unit
     ‖a_j‖ (rows with a_j ≈ 0 are ignored: u cannot change them), so ``slack`` is in m/s along
-    each constraint normal.
+    each constraint normal. ``slack_weight`` [m] (None: 1 for every row) scales each row's share of the slack,
+    â_j · u + w_j s ≥ b̂_j: a row with w_j < 1 gives way that much less (``barriers.slack_weights``).
 
     One shared slack s (not one per row): for large ρ the solution first minimises the worst
     violation over all hazards and only then the distance to u_nom, so when the constraints
@@ -215,7 +216,10 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     # its 4 columns (structure of arrays, see above).
     e = jnp.eye(3, dtype=dt)
     cols = [jnp.concatenate([a_hat[:, k], e[k], -e[k]]) for k in range(3)]
-    cols.append(jnp.concatenate([jnp.full((m,), 1.0 / jnp.sqrt(rho), dt), jnp.zeros(6, dt)]))
+    if slack_weight is None:
+        cols.append(jnp.concatenate([jnp.full((m,), 1.0 / jnp.sqrt(rho), dt), jnp.zeros(6, dt)]))
+    else:
+        cols.append(jnp.concatenate([jnp.asarray(slack_weight, dt) / jnp.sqrt(rho), jnp.zeros(6, dt)]))
     h = jnp.concatenate([b_hat, -u_max, -u_max])
     valid = jnp.concatenate([valid_rows, jnp.ones(6, bool)])
     x0 = [u_nom[0], u_nom[1], u_nom[2], jnp.zeros((), dt)]
@@ -263,22 +267,31 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
 
 # ------------------------------------------------------- from observations
 def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_max: float, drone_radius: float,
-                    safety: SafetyFilterConfig, gate_half_opening: float = 0.0, gate_bar: float = 0.0) -> FilterResult:
+                    safety: SafetyFilterConfig, gate_half_opening: float = 0.0, gate_bar: float = 0.0,
+                    cyl_accel: jax.Array | None = None) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]).
 
     The rows are :func:`aswarm.core.barriers.obs_rows` (``[cylinders M | neighbours K | floor 1 | walls 5 |
     current gate 5 | previous gate 5]``), so the flight side runs the very same filter from its own
     observations. ``gain`` [..., n] is one class-K gain per drone, applied to all its rows; margin,
-    neighbour share, floor height and the QP's settings come from ``safety``.
+    neighbour share, floor height and the QP's settings come from ``safety``. ``cyl_accel`` [..., M] (per world,
+    m/s²): the cylinders' acceleration bounds, used where ``safety.hazard_accel`` (see ``obs_rows``).
     """
-    def one(o, g, u):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
+    def one(o, g, u, a):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
         A, b, mask, _ = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
                                           gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                                           floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                                          lookahead=(safety.lookahead_xy, safety.lookahead_z))
-        return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol)
+                                          lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a)
+        return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol,
+                               slack_weight=weight)
 
+    # (static choices: a filter without them traces as it did before they existed)
+    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
+    if cyl_accel is not None and safety.hazard_accel:
+        accel = jnp.broadcast_to(jnp.asarray(cyl_accel)[..., None, :], obs.shape[:-1] + (layout.num_cylinders,))
+    else:
+        accel = None
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
-    return fn(obs, gain, cmd)
+    return fn(obs, gain, cmd, accel)

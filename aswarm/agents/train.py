@@ -133,9 +133,11 @@ class Agent:
         """theta [.., n, 2] = (penalty, gain) and attention weights [.., n, M + n - 1]."""
         return self.cbf.apply(params["cbf"], self.normalize(obs_norm, obs), hazard_mask(self.env.obs_layout, obs))
 
-    def filter_commands(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array) -> cbf_filter.FilterResult:
+    def filter_commands(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array,
+                        cyl_accel: jax.Array | None = None) -> cbf_filter.FilterResult:
         """The CBF safety filter's whole result on commands [.., n, 3] (its slack, convergence, active rows);
-        a method without a filter passes the commands through, with no slack, no row and nothing changed."""
+        a method without a filter passes the commands through, with no slack, no row and nothing changed.
+        ``cyl_accel`` [.., M]: the cylinders' acceleration bounds (``SwarmEnv.cylinder_accel``)."""
         if not self.config.uses_filter:
             zeros = jnp.zeros(cmd.shape[:-1])
             return cbf_filter.FilterResult(u=cmd, slack=zeros, intervened=zeros.astype(bool), correction_norm=zeros,
@@ -147,21 +149,23 @@ class Agent:
             gain = jnp.full(cmd.shape[:-1], self.config.safety_filter.fixed_gain)
         ec = self.env.config
         return cbf_filter.filter_from_obs(self.env.obs_layout, obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
-                                          self.config.safety_filter, ec.gate_half_opening, ec.gate_bar)
+                                          self.config.safety_filter, ec.gate_half_opening, ec.gate_bar,
+                                          cyl_accel)
 
-    def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array):
+    def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array,
+                     cyl_accel: jax.Array | None = None):
         """Apply the CBF safety filter (where the method has one) to commands [.., n, 3].
 
         Returns (filtered commands, intervened [.., n], correction norm [.., n] m/s: the training's reward
         charges it); :meth:`filter_commands` has the rest of the filter's result (slack, convergence).
         """
-        res = self.filter_commands(params, obs_norm, obs, cmd)
+        res = self.filter_commands(params, obs_norm, obs, cmd, cyl_accel)
         return res.u, res.intervened, res.correction_norm
 
-    def act(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:
+    def act(self, params: dict, obs_norm, obs: jax.Array, cyl_accel: jax.Array | None = None) -> jax.Array:
         """Deterministic, filtered commands: what evaluation and export run."""
         cmd, _, _ = self.policy(params, obs_norm, obs, None)
-        return self.safe_command(params, obs_norm, obs, cmd)[0]
+        return self.safe_command(params, obs_norm, obs, cmd, cyl_accel)[0]
 
 
 def make_env(config: TrainConfig) -> envs.SwarmEnv:
@@ -237,7 +241,7 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         def step(env_state, k):
             obs = env_state.obs
             cmd, raw, logp = ag.policy(ts.params, ts.obs_norm, obs, k)
-            safe, intervened, corr = ag.safe_command(ts.params, ts.obs_norm, obs, cmd)
+            safe, intervened, corr = ag.safe_command(ts.params, ts.obs_norm, obs, cmd, env.cylinder_accel(env_state))
             nxt = wenv.step(env_state, safe)
             done = nxt.done
             episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}

@@ -82,7 +82,7 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         def body(carry, _):
             s, rec, ended, interventions, infeasible, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
-            res = agent.filter_commands(params, obs_norm, s.obs, cmd)
+            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s))
             s = step(s, res.u)
             first = (s.done > 0) & ~ended
             rec = jax.tree.map(lambda r, m: jnp.where(first, m, r), rec, s.metrics)
@@ -127,12 +127,36 @@ def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episode
     return rec, ended, stats.intervention_rate
 
 
+def shipped() -> list[str]:
+    """The names of the shipped policies: 'pretrained' (the race) and 'pretrained:NAME' for the others."""
+    others = sorted(p.name for p in PRETRAINED.parent.iterdir() if (p / "config.json").is_file() and p != PRETRAINED)
+    return ["pretrained"] + [f"pretrained:{name}" for name in others]
+
+
+def run_folder(checkpoint_dir: str | Path) -> Path:
+    """The folder of a run, or of a shipped policy: 'pretrained' is the race policy, 'pretrained:NAME' another
+    (``aswarm/pretrained/NAME``); a one-line CheckpointError for a name that is not shipped."""
+    text = str(checkpoint_dir)
+    if text == "pretrained":
+        if not PRETRAINED.exists():
+            raise checkpoint.CheckpointError("the pretrained policy is missing from this install (it ships in "
+                                             "aswarm/pretrained/race): give a run folder from `aswarm train`")
+        return PRETRAINED
+    if text.startswith("pretrained:"):
+        folder = PRETRAINED.parent / text.split(":", 1)[1]
+        if folder == PRETRAINED or not (folder / "config.json").is_file():
+            raise checkpoint.CheckpointError(f"unknown shipped policy {text!r}: allowed: {', '.join(shipped())}")
+        return folder
+    return Path(checkpoint_dir)
+
+
+def is_shipped(checkpoint_dir: str | Path) -> bool:
+    return str(checkpoint_dir) == "pretrained" or str(checkpoint_dir).startswith("pretrained:")
+
+
 def load(checkpoint_dir: str | Path):
-    """(config, {params, obs_norm, update}) of a run folder or 'pretrained'."""
-    run_dir = PRETRAINED if str(checkpoint_dir) == "pretrained" else Path(checkpoint_dir)
-    if run_dir == PRETRAINED and not run_dir.exists():
-        raise checkpoint.CheckpointError("the pretrained policy is missing from this install (it ships in "
-                                         "aswarm/pretrained/race): give a run folder from `aswarm train`")
+    """(config, {params, obs_norm, update}) of a run folder, 'pretrained' or 'pretrained:NAME'."""
+    run_dir = run_folder(checkpoint_dir)
     if not run_dir.exists():
         raise checkpoint.CheckpointError(f"checkpoint {checkpoint_dir!s} does not exist: give a run folder or "
                                          "'pretrained'")
@@ -232,9 +256,12 @@ def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: i
 
 
 def report_dir(checkpoint_dir: str | Path, out: str | Path | None = None) -> Path:
-    """Where ``aswarm eval`` writes its files: ``out``, else the run folder, else ``runs/eval`` for 'pretrained'."""
+    """Where ``aswarm eval`` writes its files: ``out``, else the run folder, else ``runs/eval`` for 'pretrained'
+    (``runs/eval/NAME`` for 'pretrained:NAME')."""
     if out is not None:
         return Path(out)
+    if str(checkpoint_dir).startswith("pretrained:"):
+        return PRETRAINED_REPORT_DIR / str(checkpoint_dir).split(":", 1)[1]
     return PRETRAINED_REPORT_DIR if str(checkpoint_dir) == "pretrained" else Path(checkpoint_dir)
 
 

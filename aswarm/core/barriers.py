@@ -88,19 +88,27 @@ def _rows_like(h, normals):
     return xp.zeros_like(h)[..., None] + xp.asarray(normals, dtype=h.dtype)
 
 
-def cylinder_rows(pos, center, radius, vel, present, gamma, *, drone_radius: float, margin: float = 0.0) -> Rows:
+def cylinder_rows(pos, center, radius, vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
+                  motion: tuple | None = None) -> Rows:
     """Rows for vertical cylinders (infinite in z: conservative above a cylinder's top).
 
     pos [..., 3]; center, vel [..., M, 2] (cylinder xy position and velocity); radius, present [..., M];
     gamma [..., M] or broadcastable. h = ||p_xy − c|| − (R + r_d + margin): the distance form rather than
     the squared one, so that a drone may not approach a large cylinder faster than a small one at the
     same gap (the squared form's rate is γ(d² − R²)/2d).
+
+    ``motion`` = (accel [..., M], lag) for cylinders that may move, ``center`` then being the look-ahead point
+    c + τ v_c (τ = ``lag``): it moves at v_c + τ a_c, and the observation holds v_c but not the acceleration a_c.
+    With |a_c| at most ``accel`` the row holds for any such motion: n · u ≥ n · v_c + τ accel − γ h.
     """
     xp = geometry.namespace(pos, center)
     dist, n_xy = unit(pos[..., None, :2] - center)  # [..., M], [..., M, 2]
     h = dist - (radius + drone_radius + margin)
     A = xp.concat([n_xy, xp.zeros_like(n_xy[..., :1])], axis=-1)
     b = xp.sum(n_xy * vel, axis=-1) - gamma * h
+    if motion is not None:
+        accel, lag = motion
+        b = b + lag * accel
     return Rows(A, b, present, h)
 
 
@@ -178,7 +186,8 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 
 
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
-                   drone_radius: float, margin: float, floor_z: float, neighbour_share) -> list[Rows]:
+                   drone_radius: float, margin: float, floor_z: float, neighbour_share,
+                   cyl_motion: tuple | None = None) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]."""
     xp = geometry.namespace(pos)
     M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
@@ -196,7 +205,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         g_cyl, g_nbr, g_floor = gamma[..., :M], gamma[..., M:M + K], gamma[..., M + K:]
     return [
         cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
-                      margin=margin),
+                      margin=margin, motion=cyl_motion),
         neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
                        share=neighbour_share),
         floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin),
@@ -205,7 +214,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
-             lookahead: tuple[float, float] = (0.0, 0.0)) -> Rows:
+             lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -224,6 +233,11 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     with a first-order lag τ (v̇ = (u − v)/τ) has q̇ = v + τ v̇ = u exactly, so the single-integrator rows
     above hold for q on the lagging drone; and p, the exponential average of q's past (ṗ = (q − p)/τ),
     stays in every convex safe set (floor, walls) that q keeps. (0, 0) is the plain single integrator.
+
+    ``cyl_accel`` [..., n, M] (m/s², or None: the rows above, every cylinder holding its velocity): a bound on each
+    cylinder's acceleration, for scenes where cylinders move. The observation holds each one's velocity but not its
+    acceleration, so its row holds against the worst within the bound (:func:`cylinder_rows`' ``motion``; a static
+    one, bound 0, keeps its row; nothing changes without a look-ahead, where the command acts at once).
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -262,9 +276,10 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     else:
         gates = [gate(pos, at, OWN.slice(rel), OWN.slice(normal)) for rel, normal in _GATE_FIELDS]
     gamma = xp.asarray(gain, dtype=obs.dtype)[..., None]
+    motion = None if cyl_accel is None else (xp.asarray(cyl_accel, dtype=obs.dtype), lookahead[0])
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
-                            neighbour_share=neighbour_share)
+                            neighbour_share=neighbour_share, cyl_motion=motion)
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
     walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)
@@ -273,6 +288,16 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     if numpy:
         frames = [_merge_gates(f) for f in frames]
     return concat([*points, walls, *frames])
+
+
+def slack_weights(layout, static_weight: float) -> np.ndarray:
+    """[m] each row's share of the filter's shared slack in :func:`obs_rows`' layout: 1 for the cylinders and the
+    neighbours, ``static_weight`` for the floor, the walls, the ceiling and the gate frames. Those hold still, and
+    hovering keeps every one of them, so when no command satisfies every row (a fast cylinder, a crowd) they give
+    way ``static_weight`` times less than the moving hazards: a drone is not pushed into the floor or a frame to
+    spread the violation evenly."""
+    m = layout.num_cylinders + layout.num_neighbours
+    return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight))])
 
 
 def _merge_gates(rows: Rows) -> Rows:

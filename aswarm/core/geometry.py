@@ -90,6 +90,12 @@ def cylinders_at(center, axis, amplitude, omega, phase, t):
     return pos, vel
 
 
+def cylinder_accel_bound(amplitude, omega):
+    """[..., M] the largest acceleration (m/s²) of each cylinder of :func:`cylinders_at`: amplitude ω² (0 if static).
+    The safety filter's rows for a moving cylinder hold against any motion within this bound."""
+    return amplitude * omega * omega
+
+
 def gate_crossed(p_prev, p_new, gate_pos, normal, half_opening: float):
     """[...] true where the move ``p_prev -> p_new`` [..., 3] crosses a gate forwards, inside its opening.
 

@@ -41,6 +41,14 @@ class SafetyFilterConfig:
     # gate contacts than 1 (README, "On the firmware drone"). Runs from before the scale read back with 1.
     fit_lookahead: bool = True
     lookahead_scale: float = 0.9
+    # Moving cylinders' rows hold against their acceleration bound (the scenario's amplitude ω², given to the filter
+    # beside the observation), not only their present velocity (aswarm.core.barriers.obs_rows). Runs and bundles
+    # from before read back without it.
+    hazard_accel: bool = True
+    # When no command satisfies every row, the floor, walls, ceiling and gate frames take this share of the shared
+    # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
+    # runs and bundles from before it do.
+    static_slack: float = 0.1
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
@@ -61,6 +69,8 @@ class SafetyFilterConfig:
                 raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: a finite number")
         if not 0 < self.gain_min < self.gain_max:
             raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
+        if not 0 < self.static_slack <= 1:
+            raise ValueError(f"invalid safety_filter.static_slack={self.static_slack!r}: allowed: (0, 1]")
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
@@ -86,7 +96,7 @@ class SafetyFilterConfig:
 
 
 # The config's true/false fields; every other field is a number.
-_FLAGS = ("fit_to_drone", "fit_lookahead")
+_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -129,7 +139,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     (bundles from before this config have them too), so a missing one is an error, not a default."""
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
-              "lookahead_scale": 1.0, **safety}
+              "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

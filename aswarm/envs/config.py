@@ -34,6 +34,9 @@ class EnvConfig:
     num_obstacles: int = 8  # static cylinders
     num_moving: int = 0  # moving cylinders, at most, per episode
     min_moving: int = 0  # moving cylinders, at least, per episode
+    # Moving cylinders, at most, per episode, of the num_moving slots the observation holds (-1: all of them). A
+    # policy trained on 1-3 flies exactly k of its 3 slots with min_moving = max_moving = k (the safety matrix).
+    max_moving: int = -1
     num_gates: int = 4  # 0: each drone flies to a goal point instead
     # Geometry (metres). Gate tracks are ellipses with these semi-axes.
     track_radii: tuple[float, float] = (6.0, 4.0)
@@ -137,6 +140,11 @@ class EnvConfig:
     def num_cylinders(self) -> int:
         return self.num_obstacles + self.num_moving
 
+    @property
+    def most_moving(self) -> int:
+        """Moving cylinders at most in an episode (max_moving, -1 read as num_moving)."""
+        return self.num_moving if self.max_moving < 0 else self.max_moving
+
 
 # Fields of cf., gains. and pid. where 0 means "left out" rather than nonsense.
 MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.", "rate_kd"), ("pid.", "vel_xy_ki"),
@@ -159,7 +167,8 @@ def legacy_drone_stored() -> dict:
 
 # EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
-               "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash}
+               "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash,
+               "max_moving": -1}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -247,6 +256,10 @@ def validate(c: EnvConfig) -> None:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.min_moving > c.num_moving:
         _fail("min_moving", c.min_moving, f"must be <= num_moving={c.num_moving}")
+    if not isinstance(c.max_moving, int) or isinstance(c.max_moving, bool) or not (
+            c.max_moving == -1 or c.min_moving <= c.max_moving <= c.num_moving):
+        _fail("max_moving", c.max_moving, f"allowed: -1 (num_moving) or min_moving={c.min_moving} to "
+                                          f"num_moving={c.num_moving}")
     if not c.reference_leash > 0:
         _fail("reference_leash", c.reference_leash, "must be > 0 m")
     if c.sim_freq < 240:

@@ -195,7 +195,7 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitud
     # The first draw that keeps every gap; if none does (a config packed too tightly), the widest.
     pick = jnp.where(jnp.any(ok), jnp.argmax(ok), jnp.argmax(narrowest))
     center = draws[pick]
-    n_moving = jax.random.randint(k_count, (), cfg.min_moving, cfg.num_moving + 1)
+    n_moving = jax.random.randint(k_count, (), cfg.min_moving, cfg.most_moving + 1)
     present = static | (jnp.arange(m) - cfg.num_obstacles < n_moving)
     omega = jnp.where(static, 0.0, moving_omega)
 

@@ -348,6 +348,13 @@ class SwarmEnv:
         delayed = seen[jnp.minimum(p.mocap_delay, ob.obs_history.shape[0]).astype(jnp.int32)]
         return delayed, ob.replace(obs_history=seen[:ob.obs_history.shape[0]], key=key)
 
+    def cylinder_accel(self, state: State) -> jax.Array | None:
+        """[..., M] each cylinder's acceleration bound (m/s², 0 if static) for the safety filter; None where no
+        cylinder moves (a static choice: those filters trace as they did before the bounds). A batch of states too."""
+        if self.config.num_moving == 0:
+            return None
+        return geo.cylinder_accel_bound(state.layout.cyl_amplitude, state.layout.cyl_omega)
+
     def flying(self, state: State) -> jax.Array:
         """[..., n] bool: drones not finished and released (staggered track starts); the others hover and
         earn neither reward nor cost. Works on a batch of states too."""

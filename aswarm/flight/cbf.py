@@ -405,12 +405,13 @@ _BOX = np.concatenate([_BOX, np.zeros((6, 1))], 1)  # the box rows of G (no slac
 
 
 def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.ndarray, u_max, *, rho: float = 1e6,
-                    max_iter: int = 16, tol: float = 1e-6) -> FilterResult:
+                    max_iter: int = 16, tol: float = 1e-6, slack_weight: np.ndarray | None = None) -> FilterResult:
     """Closest velocity to ``u_nom`` [..., 3] with ``A u ≥ b`` (rows where ``mask``) and ``|u_k| ≤ u_max``.
 
     A [..., m, 3]; b, mask [..., m]; u_max scalar or [3]. Rows are normalised to unit ‖a_j‖ (rows with
     a_j ≈ 0 are ignored). A command that satisfies every row and the box (to ``tol``) is returned
-    unchanged; only the other problems go through the active-set steps.
+    unchanged; only the other problems go through the active-set steps. ``slack_weight`` [m]: each row's share
+    of the shared slack (None: 1), as in the JAX filter.
     """
     u_nom = np.asarray(u_nom, np.float64)
     lead, m = u_nom.shape[:-1], A.shape[-2]
@@ -423,6 +424,8 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
         u_max = tuple(np.broadcast_to(np.asarray(u_max, float), (3,)).tolist())
     G, h, valid = _qp_rows(P, m, u_max, float(rho))
     G[:, :m, :3] = a_hat
+    if slack_weight is not None:
+        G[:, :m, 3] = np.asarray(slack_weight, np.float64) / np.sqrt(rho)
     h[:, :m] = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
     valid[:, :m] = valid_rows
     return _reshape(_solve(u_nom.reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol), lead)
@@ -437,17 +440,22 @@ def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
 # ------------------------------------------------------------------ from observations
 def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray, u_max: float,
                     drone_radius: float, safety: SafetyFilterConfig, gate_half_opening: float = 0.0,
-                    gate_bar: float = 0.0) -> FilterResult:
+                    gate_bar: float = 0.0, cyl_accel: np.ndarray | None = None) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]); gain [..., n].
 
     As ``cbf_filter.filter_from_obs``: the rows of :func:`aswarm.core.barriers.obs_rows` (one gain per
     drone for all its rows; gate rows present when ``gate_bar > 0`` and the observation has a gate),
-    margin, neighbour share, floor height and the QP's settings from ``safety``.
+    margin, neighbour share, floor height and the QP's settings from ``safety``; ``cyl_accel`` [..., M] (per swarm,
+    m/s²) the cylinders' acceleration bounds, used where ``safety.hazard_accel``.
     """
     obs = np.asarray(obs, np.float64)
+    accel = None
+    if cyl_accel is not None and safety.hazard_accel:
+        accel = np.asarray(cyl_accel, np.float64)[..., None, :]
     rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
                              margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                              floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                             lookahead=(safety.lookahead_xy, safety.lookahead_z))
+                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel)
+    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
     return filter_velocity(cmd, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
-                           tol=safety.tol)
+                           tol=safety.tol, slack_weight=weight)

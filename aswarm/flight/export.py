@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from pathlib import Path
 
 import jax
@@ -20,6 +21,7 @@ import numpy as np
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.networks import ACTIVATIONS
 from aswarm.analysis.step_response import characterise
+from aswarm.core.geometry import cylinder_accel_bound
 from aswarm.core.layout import ObsLayout
 from aswarm.core.safety import manifest_fields
 from aswarm.envs.presets import SCENARIOS
@@ -76,7 +78,12 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
                       collision_radius=ec.cf.collision_radius,
                       arena_low=list(ec.arena_low), arena_high=list(ec.arena_high),
                       gate_half_opening=ec.gate_half_opening, gate_bar=ec.gate_bar, goal_radius=ec.goal_radius,
-                      episode_seconds=ec.episode_seconds, safety_margin=ec.safety_margin)
+                      episode_seconds=ec.episode_seconds, safety_margin=ec.safety_margin,
+                      # m/s²: how hard the moving cylinders the policy trained among could accelerate (their
+                      # amplitude ω²; 0 without); give moving obstacles' bounds in flight as Obstacles(accel=...)
+                      moving_accel_bound=float(cylinder_accel_bound(ec.moving_amplitude,
+                                                                    2 * math.pi / ec.moving_period))
+                      if ec.num_moving else 0.0)
     course = {"gates": [[*map(float, p), float(y)] for p, y in zip(geo.gate_pos, geo.gate_yaw)],
               "gates_meaning": "nominal (x, y, z) m and yaw rad of each gate in order; episodes jitter them",
               "start_center": [float(v) for v in geo.start_center],
@@ -142,14 +149,15 @@ def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Pa
 
 
 def export(checkpoint: str | Path, out_dir: str | Path, force: bool = False) -> Path:
-    """Export a run folder's latest checkpoint (or ``"pretrained"``) to the bundle folder ``out_dir``."""
+    """Export a run folder's latest checkpoint (or a shipped policy, ``"pretrained[:NAME]"``) to the bundle folder
+    ``out_dir``."""
     from aswarm.analysis import evaluate
 
     out = Path(out_dir)
     if out.exists() and not force:  # before the slow restore
         raise fb.BundleError(f"bundle {out} already exists: allowed: a new --out folder, or --force to overwrite it")
     config, restored = evaluate.load(checkpoint)
-    run_dir = evaluate.PRETRAINED if str(checkpoint) == "pretrained" else Path(checkpoint)
+    run_dir = evaluate.run_folder(checkpoint)
     cfg_file = run_dir / "config.json"
     text = cfg_file.read_text() if cfg_file.is_file() else None
     return export_policy(config, restored["params"], restored["obs_norm"], out, force=force, source=str(checkpoint),

@@ -76,14 +76,17 @@ class SafetyConfig:
 class Obstacles:
     """Vertical cylinders seen by mocap: pos [..., M, 2] (m, world xy), radius [..., M] (m).
 
-    vel [..., M, 2] m/s (zero if None); present [..., M] bool (all if None). M may be smaller than the
-    number the policy was trained with (the rest are absent), never larger.
+    vel [..., M, 2] m/s (zero if None); present [..., M] bool (all if None); accel [..., M] m/s², a bound on each
+    one's acceleration (0: static, all if None; the filter's rows for a moving one hold against any motion within
+    it, where the bundle's filter has ``hazard_accel``). M may be smaller than the number the policy was trained
+    with (the rest are absent), never larger.
     """
 
     pos: np.ndarray
     radius: np.ndarray
     vel: np.ndarray | None = None
     present: np.ndarray | None = None
+    accel: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -292,7 +295,7 @@ class FlightController:
         obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
                       cyl_present, self._collision_radius, self._arena_low, self._arena_high,
                       self.bundle.max_neighbours)
-        pol = run_policy(self.bundle, obs)
+        pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles))
 
         u = pol.u
         nonfinite = ~np.isfinite(u).all(-1)
@@ -335,6 +338,19 @@ class FlightController:
         if x.shape != want:
             raise ValueError(f"{name} has shape {x.shape}: allowed shape is {want}")
         return x.reshape((self.B,) + tail)
+
+    def _obstacle_accel(self, obstacles: Obstacles | None) -> np.ndarray | None:
+        """[B, M] the obstacles' acceleration bounds (absent slots 0), or None where none was given."""
+        if obstacles is None or obstacles.accel is None:
+            return None
+        m = np.shape(obstacles.pos)[-2]
+        acc = _shaped(obstacles.accel, self._lead + (m,), np.float64).reshape(self.B, m)
+        if not (np.isfinite(acc).all() and (acc >= 0).all()):
+            raise ValueError(f"invalid obstacles.accel={np.asarray(obstacles.accel).tolist()!r}: allowed: finite "
+                             "bounds >= 0 m/s^2")
+        out = np.zeros((self.B, self.num_cylinders))
+        out[:, :m] = acc
+        return out
 
     def _obstacle_arrays(self, obstacles: Obstacles | None):
         """(pos [B, M, 2], vel [B, M, 2], radius [B, M], present [B, M], lost [B, n]) as observe takes them."""
@@ -389,11 +405,12 @@ class FlightController:
         return pos, vel, radius, present, lost
 
 
-def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray) -> cbf.FilterResult:
-    """The bundle's safety filter on raw observations [..., n, D] and commands [..., n, 3]."""
+def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray,
+                    cyl_accel: np.ndarray | None = None) -> cbf.FilterResult:
+    """The bundle's safety filter on raw observations [..., n, D] and commands [..., n, 3]; cyl_accel [..., M]."""
     sf = bundle.safety_filter
     return cbf.filter_from_obs(bundle.layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
-                               bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]))
+                               bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]), cyl_accel)
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -416,8 +433,9 @@ class PolicyOutput:
     converged: np.ndarray  # [..., n] bool
 
 
-def run_policy(bundle: Bundle, obs: np.ndarray) -> PolicyOutput:
-    """Normalizer, actor, gain and filter on raw observations [..., n, D]: what ``Agent.act`` computes in JAX."""
+def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None) -> PolicyOutput:
+    """Normalizer, actor, gain and filter on raw observations [..., n, D]: what ``Agent.act`` computes in JAX
+    (``cyl_accel`` [..., M]: the cylinders' acceleration bounds, m/s²)."""
     sf, w = bundle.safety_filter, bundle.weights
     nobs = policy.normalize(w, obs)
     cmd = policy.actor_command(w, nobs, bundle.max_speed)
@@ -429,10 +447,10 @@ def run_policy(bundle: Bundle, obs: np.ndarray) -> PolicyOutput:
     if not sf["enabled"]:
         off = np.zeros(obs.shape[:-1], bool)
         return PolicyOutput(nominal=cmd, u=cmd, gain=gain, intervened=off, converged=~off)
-    res = filter_commands(bundle, obs, cmd, gain)
+    res = filter_commands(bundle, obs, cmd, gain, cyl_accel)
     return PolicyOutput(nominal=cmd, u=res.u, gain=gain, intervened=res.intervened, converged=res.converged)
 
 
-def act(bundle: Bundle, obs: np.ndarray) -> np.ndarray:
+def act(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None) -> np.ndarray:
     """Deterministic, filtered commands [..., n, 3] from raw observations (``Agent.act``)."""
-    return run_policy(bundle, obs).u
+    return run_policy(bundle, obs, cyl_accel).u

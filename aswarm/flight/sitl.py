@@ -28,6 +28,7 @@ import numpy as np
 from aswarm import config_args, envs
 from aswarm.analysis import evaluate
 from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.core.geometry import cylinder_accel_bound
 from aswarm.envs.config import with_legacy_drone
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.randomization import Randomization
@@ -163,6 +164,8 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
                           finished_are_neighbours=False)
     ctl = FlightController(b, env.num_agents, safety=safety, estimation=estimation)
     ctl.reset(**course(b, layout))
+    # The moving cylinders' acceleration bounds, as a flight script gives them from its obstacles' known motion.
+    accel = cylinder_accel_bound(layout.cyl_amplitude, layout.cyl_omega) if cfg.num_moving else None
     rng = np.random.default_rng(seed)
     seen = collections.deque(maxlen=latency + 1)
     n = env.num_agents
@@ -197,7 +200,7 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
         t0 = time.perf_counter()
         out = ctl.step(pos, old.quat, np.asarray(old.time)[:, None], now=np.asarray(host.time),
                        obstacles=Obstacles(pos=old.cyl_pos, radius=layout.cyl_radius, vel=old.cyl_vel,
-                                           present=layout.cyl_present))
+                                           present=layout.cyl_present, accel=accel))
         runtime += time.perf_counter() - t0
         steps += 1
         live = ~ended

@@ -66,14 +66,18 @@ def _train_fields(path: Path, train: dict) -> dict:
         raise CheckpointError(f"{path} is not a valid aswarm run config: {e}") from e
     # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted; runs from
     # before fit_lookahead had their gains fitted, not the look-aheads; runs from before lookahead_scale set the
-    # look-aheads to the lags themselves.
+    # look-aheads to the lags themselves; runs from before hazard_accel held moving cylinders to their velocity only,
+    # and spread the filter's slack evenly (static_slack 1).
     sf = train.get("safety_filter")
     if sf is None:
-        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False}
+        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "hazard_accel": False,
+                                  "static_slack": 1.0}
     elif isinstance(sf, dict):
-        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_scale": 1.0, **sf}
+        train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_scale": 1.0,
+                                  "hazard_accel": False, "static_slack": 1.0, **sf}
     elif isinstance(sf, safety.SafetyFilterConfig):  # nest_legacy's, from flat fields: an old run
-        train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False, fit_lookahead=False)
+        train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False, fit_lookahead=False, hazard_accel=False,
+                                                     static_slack=1.0)
     types = config_args.field_types(TrainConfig)
     unknown = sorted(set(train) - set(types))
     if unknown:
