@@ -138,7 +138,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         if key not in KINDS and key not in CELL_NAMES:
             p.error(f"invalid --policy {item!r}: unknown kind {key!r}; allowed: {', '.join(KINDS)} "
                     f"(or a cell: {', '.join(CELL_NAMES)})")
-        if is_shipped(run) and run not in shipped() or not is_shipped(run) and not Path(run).is_dir():
+        if (run not in shipped()) if is_shipped(run) else not Path(run).is_dir():
             p.error(f"invalid --policy {item!r}: no run folder {run!r}; allowed: a folder from `aswarm train` or "
                     f"a shipped policy ({', '.join(shipped())})")
         policies[key] = run if is_shipped(run) else str(Path(run))  # ./runs/x and runs/x share their cells

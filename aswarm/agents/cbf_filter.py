@@ -216,7 +216,7 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     # its 4 columns (structure of arrays, see above).
     e = jnp.eye(3, dtype=dt)
     cols = [jnp.concatenate([a_hat[:, k], e[k], -e[k]]) for k in range(3)]
-    if slack_weight is None:
+    if slack_weight is None:  # the program of before the weights, so stored policies keep their bits
         cols.append(jnp.concatenate([jnp.full((m,), 1.0 / jnp.sqrt(rho), dt), jnp.zeros(6, dt)]))
     else:
         cols.append(jnp.concatenate([jnp.asarray(slack_weight, dt) / jnp.sqrt(rho), jnp.zeros(6, dt)]))
