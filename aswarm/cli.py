@@ -124,6 +124,18 @@ def cmd_sitl(args: argparse.Namespace) -> int:
 
     from aswarm.flight import estimator, sitl
 
+    if args.replay is not None:
+        out = args.out or args.replay.with_name(args.replay.with_suffix("").name + "-sitl")
+        result = sitl.replay_flight(args.bundle, args.replay, out, seed=args.seed,
+                                    estimation=estimator.from_args(args))
+        if args.json:
+            print(json.dumps(result))
+        else:
+            print(f"simulated the flight's start for {result['seconds']:.1f} s: success {result['success']:.0f}, "
+                  f"collision {result['collision']:.0f}; record {out}.npz")
+            print(f"side by side: aswarm plot --flight {args.replay} --compare {out}.npz")
+        return 0
+
     result = sitl.run_sitl(args.bundle, scenario=args.scenario, episodes=args.episodes, seed=args.seed,
                            noise=args.noise, latency_ms=args.latency, mass_scale=args.mass_scale,
                            thrust_scale=args.thrust_scale, env_overrides=args.env or [],
@@ -172,8 +184,19 @@ def _record_episode(args: argparse.Namespace, need_attention: bool = False):
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    if args.flight is not None:  # a flight record of `aswarm fly` (numpy and matplotlib only)
+        from aswarm.flight import record
+
+        if args.checkpoint is not None:
+            raise ValueError("--flight and --checkpoint both name what to draw: allowed: one of them")
+        out = args.out or args.flight.with_suffix(".png")
+        print(f"wrote {record.plot_flight(args.flight, out, compare=args.compare)}")
+        return 0
+    if args.checkpoint is None:
+        raise ValueError("nothing to draw: allowed: --checkpoint RUN (a simulated episode) or --flight RECORD")
     from aswarm.analysis import plots
 
+    args.out = args.out or Path("traj.png")
     plots.check_output(args.out)
     _, ep = _record_episode(args, need_attention=args.attention)
     if args.attention:
@@ -277,25 +300,37 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the simulated drone's thrust constant over the nominal (what the controller assumes)")
     si.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
     estimator.add_arguments(si)
+    si.add_argument("--replay", type=Path, default=None, metavar="FLIGHT",
+                    help="instead: one episode from a flight record's start (its drones' positions when the control "
+                         "loop started, its course and obstacles), written as a flight record for a side-by-side")
+    si.add_argument("--out", type=Path, default=None, help="--replay: record to write (default FLIGHT-sitl)")
     si.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     si.set_defaults(func=cmd_sitl)
 
     from aswarm.flight import fly as flight_fly
 
     # Listed for --help only: main() hands `aswarm fly` to the flight package before this parser is built.
-    fl = sub.add_parser("fly", help="stream a bundle's velocity setpoints to Crazyflies (cflib), or --dry-run")
+    fl = sub.add_parser("fly", help="fly a bundle on Crazyflies with live motion capture (cflib, motioncapture), "
+                                    "or rehearse it with --mocap mock --dry-run")
     flight_fly.add_arguments(fl)
 
-    def episode_flags(q: argparse.ArgumentParser) -> None:
-        q.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
+    def episode_flags(q: argparse.ArgumentParser, required: bool = True) -> None:
+        q.add_argument("--checkpoint", required=required, default=None, help="run folder, or 'pretrained'")
         q.add_argument("--scenario", default=None, help="default: the scenario it was trained on")
         q.add_argument("--seed", type=int, default=EVAL_SEED, help="evaluation seed, as for eval")
         q.add_argument("--episode-index", type=int, default=0, help="which episode of that seed (eval's order)")
         q.add_argument("--env", action="append", metavar="FIELD=VALUE", help="env config override, repeatable")
 
-    pl = sub.add_parser("plot", help="trajectory figure (3D, top and side views) or attention figure of one episode")
-    episode_flags(pl)
-    pl.add_argument("--out", type=Path, default=Path("traj.png"), help="figure file (.png, .pdf or .svg)")
+    pl = sub.add_parser("plot", help="trajectory figure (3D, top and side views) or attention figure of one episode, "
+                                     "or a flight record's figure (--flight)")
+    episode_flags(pl, required=False)
+    pl.add_argument("--flight", type=Path, default=None, metavar="RECORD",
+                    help="instead: a flight record of `aswarm fly` (NAME.npz): top view and altitude of mocap vs "
+                         "onboard estimate, commands before/after the filter, battery")
+    pl.add_argument("--compare", type=Path, default=None, metavar="RECORD",
+                    help="with --flight: another record drawn beside it (e.g. `aswarm sitl --replay`'s)")
+    pl.add_argument("--out", type=Path, default=None,
+                    help="figure file (.png, .pdf or .svg; default traj.png, or RECORD.png with --flight)")
     pl.add_argument("--attention", action="store_true",
                     help="draw one drone's attention weights over time above its distance to each obstacle")
     pl.add_argument("--drone", type=int, default=0, help="the drone of the attention figure")

@@ -41,7 +41,7 @@ EPISODE_S = 4.0
 # filter slows a drone closing on a bar, so with the real opening almost no drone passed in 4 s.
 HALF_OPENING = 0.6
 URIS = ",".join(f"radio://0/80/2M/E7E7E7E70{i}" for i in range(4))
-BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax", "chex", "cflib")
+BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax", "chex", "cflib", "motioncapture")
 
 
 # ------------------------------------------------------------------ fixtures
@@ -145,7 +145,7 @@ def test_flight_package_imports_no_jax_flax_mujoco_or_brax(synthetic):
                     raise ImportError("blocked: " + name)
         sys.meta_path.insert(0, Block())
         import numpy as np
-        import aswarm.flight, aswarm.flight.fly, aswarm.flight.bench
+        import aswarm.flight, aswarm.flight.fly, aswarm.flight.bench, aswarm.flight.record, aswarm.flight.links
         from aswarm.flight import FlightController, load_bundle
         b = load_bundle({str(synthetic.path)!r})
         ctl = FlightController(b, 4)
@@ -705,11 +705,16 @@ def _replay_csv(path, steps=40, missing=(2, range(10, 14))):
 
 def test_fly_dry_run_replays_a_pose_log(synthetic, tmp_path, capsys):
     csv = _replay_csv(tmp_path / "poses.csv")
-    args = ["fly", "--bundle", str(synthetic.path), "--uris", URIS, "--mocap", f"replay:{csv}", "--dry-run"]
+    args = ["fly", "--bundle", str(synthetic.path), "--uris", URIS, "--mocap", f"replay:{csv}", "--dry-run",
+            "--record", str(tmp_path / "flight")]
     assert cli.main(args) == 0
     out = capsys.readouterr().out.splitlines()
     sends = [line for line in out if "send_velocity_world_setpoint" in line]
-    assert out[0].startswith("takeoff all")
+    # The sequence before the first setpoint (tests/test_fly_live.py checks it call by call).
+    steps = [next(i for i, line in enumerate(out) if line.startswith(p)) for p in
+             ("connect", "param all stabilizer.estimator=2", "reset estimators", "arm all", "takeoff all")]
+    assert steps == sorted(steps) and steps[-1] < out.index(sends[0])
+    assert (tmp_path / "flight.npz").is_file() and (tmp_path / "flight.json").is_file()
     rate = synthetic.manifest["control"]["rate_hz"]
     assert len(sends) == 4 * round(0.4 * rate)  # 0.4 s of poses at the bundle's control rate, 4 drones
     assert all("yawrate=0 deg/s" in line for line in sends)
@@ -796,7 +801,7 @@ def test_aswarm_fly_runs_without_jax(synthetic, tmp_path):
         sys.meta_path.insert(0, Block())
         from aswarm import cli  # `aswarm fly`: the main command line hands over before importing JAX
         sys.exit(cli.main(["fly", "--bundle", {str(synthetic.path)!r}, "--uris", {URIS!r}, "--mocap",
-                           "replay:{csv}", "--dry-run"]))
+                           "replay:{csv}", "--dry-run", "--record", {str(tmp_path / "flight")!r}]))
     """)
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr

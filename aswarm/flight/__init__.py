@@ -12,7 +12,12 @@ simulator and the trainer would:
 | ``policy.py`` | observation normalizer, actor and attention-CBF network (forward passes) |
 | ``cbf.py`` | the CBF safety filter's QP in numpy (rows from ``aswarm.core.barriers``, as the JAX filter) |
 | ``runtime.py`` | ``FlightController``: poses in, bounded world-frame velocity setpoints out, with safety checks |
-| ``fly.py`` | ``aswarm fly``: mocap sources, the Crazyflie link (cflib, imported lazily), the flight loop |
+| ``fly.py`` | ``aswarm fly``: the flight sequence (pre-flight checks, take-off, staggered starts, loop, landing) |
+| ``mocap.py`` | pose sources: live motion capture (``motioncapture``, imported lazily), its mock, CSV replays |
+| ``links.py`` | the radio side: the ``Link`` protocol, a recording stand-in, the cflib swarm (imported lazily) |
+| ``swarm_config.py`` | the swarm file (TOML): each drone's URI, rigid body and start; obstacles |
+| ``record.py`` | the flight record (npz + JSON, written atomically) and its figure |
+| ``clock.py`` | the wall clock and a fake one for tests |
 | ``bench.py`` | per-step cost of the runtime |
 | ``export.py``, ``sitl.py`` | write a bundle, fly it in the simulator (JAX; the package imports neither) |
 

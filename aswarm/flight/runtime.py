@@ -212,10 +212,13 @@ class FlightController:
         self._all_present = _read_only(np.ones((B, M), bool))
 
     # ------------------------------------------------------------------ step
-    def step(self, positions, quats, timestamps, now=None, obstacles: Obstacles | None = None) -> StepResult:
+    def step(self, positions, quats, timestamps, now=None, obstacles: Obstacles | None = None,
+             hold=None) -> StepResult:
         """One control step. positions [..., n, 3] (m, world), quats [..., n, 4] (wxyz, body->world),
         timestamps [..., n] or broadcastable (s, the clock of ``now``); NaN marks a missing pose.
-        ``now`` [...] or scalar (default: the newest timestamp). Returns a :class:`StepResult`.
+        ``now`` [...] or scalar (default: the newest timestamp). ``hold`` [..., n] bool: drones not released yet
+        (staggered starts, ``EnvConfig.start_interval``): a zero command, as the simulator gives them, and the
+        estimates know it. Returns a :class:`StepResult`.
         """
         if self._lead is None:
             raise ValueError("call reset(gates=... or goals=...) before step")
@@ -300,6 +303,8 @@ class FlightController:
         u = pol.u
         nonfinite = ~np.isfinite(u).all(-1)
         hover = blind | self._landing | nonfinite
+        if hold is not None:
+            hover = hover | _shaped(hold, lead + (n,), bool).reshape(B, n)
         u = np.where(hover[:, :, None], 0.0, u)
         np.maximum(u, -self.max_speed, out=u)  # np.clip, in place
         np.minimum(u, self.max_speed, out=u)

@@ -233,3 +233,114 @@ def format_table(r: dict) -> str:
     shown = ", ".join(f"{k} {v}" for k, v in r["events"].items()) or "none"
     lines.append(f"  {'runtime events':24s} {shown}")
     return "\n".join(lines)
+
+
+def replay_flight(bundle: Bundle | str | Path, flight: str | Path, out: str | Path, seed: int = EVAL_SEED,
+                  estimation: EstimatorConfig = EstimatorConfig()) -> dict:
+    """Fly a recorded flight's start in the simulator, through the same runtime, for a side-by-side.
+
+    One episode of the bundle's training environment (the exact nominal drone, as :func:`run_sitl` flies it) whose
+    layout is replaced by the flight's: the drones start where the record has them when its control loop started
+    (after take-off), at rest and level; the gates (or goals) are the flight's course; the cylinders are the flight's
+    obstacles where the record first has them at that moment, with their radii, static (a moving one is frozen where
+    it was) and the rest absent. The episode runs until the simulator ends it (every drone finished or collided, or
+    the episode's time limit) or as long as the flight's control loop, whichever is first. Mocap noise, latency, the
+    take-off and the landing are not simulated; the simulator's clock is one control step (at rest) ahead of the
+    record's, so its staggered releases come that much earlier. Writes a flight record (:mod:`aswarm.flight.record`)
+    to ``out`` and returns the episode's metrics.
+    """
+    from aswarm.flight import record
+
+    rec = record.load_record(flight)
+    b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
+    a, meta = rec.arrays, rec.meta
+    control = np.flatnonzero(a["phase"] == record.PHASES.index("control"))
+    if not len(control):
+        raise ValueError(f"flight record {flight} has no control steps (status {meta.get('status')!r}): nothing to "
+                         "replay")
+    first = int(control[0])
+    p0 = np.asarray(a["pos"][first], np.float64)
+    if not np.isfinite(p0).all():
+        raise ValueError(f"flight record {flight}: not every drone had a pose when the control loop started")
+    env = make_env(b)
+    one = Randomization(mass=(1.0, 1.0), thrust_constant=(1.0, 1.0), torque_constant=(1.0, 1.0), motor_tau=(1.0, 1.0),
+                        gains=(1.0, 1.0), latency=(0.0, 0.0), mocap_noise=(0.0, 0.0), mocap_delay=(0, 0))
+    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=one))
+    cfg = env.config
+    n, M = env.num_agents, cfg.num_cylinders
+    if p0.shape != (n, 3):
+        raise ValueError(f"flight record {flight} has {p0.shape[0]} drones, the bundle {n}")
+    sim = simulator(cfg, 1)
+    state, _ = sim.reset(jax.random.PRNGKey(seed))
+    lay = state.layout
+    course = meta.get("course", {})
+    changes = {"start_pos": jnp.asarray(p0[None], jnp.float32)}
+    if b.kind == "track":
+        gates = np.asarray(course["gates"], np.float32)
+        changes.update(gate_pos=jnp.asarray(gates[None, :, :3]), gate_yaw=jnp.asarray(gates[None, :, 3]),
+                       waypoints=jnp.broadcast_to(jnp.asarray(gates[None, None, :, :3]), lay.waypoints.shape))
+    else:
+        goals = np.asarray(course["goals"], np.float32)
+        changes["waypoints"] = jnp.asarray(goals[None, :, None, :])
+    xy = np.asarray(a["obstacle_xy"][first], np.float32)
+    radii = np.asarray(meta.get("obstacle_radius", []), np.float32)
+    m = min(len(radii), M)
+    seen = np.zeros(M, bool)
+    centre, radius = np.zeros((M, 2), np.float32), np.asarray(lay.cyl_radius[0]).copy()
+    if m:
+        seen[:m] = np.isfinite(xy[:m]).all(-1)
+        centre[:m] = np.where(seen[:m, None], xy[:m], 0.0)
+        radius[:m] = radii[:m]
+    changes.update(cyl_center=jnp.asarray(centre[None]), cyl_radius=jnp.asarray(radius[None]),
+                   cyl_present=jnp.asarray(seen[None]), cyl_amplitude=jnp.zeros((1, M)), cyl_omega=jnp.zeros((1, M)))
+    lay = lay.replace(**changes)
+    qpos = np.concatenate([p0, np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))], -1).reshape(1, -1)
+    data = state.data.replace(qpos=jnp.asarray(qpos, state.data.qpos.dtype), qvel=jnp.zeros_like(state.data.qvel))
+    onboard = state.onboard
+    if onboard.reference is not None:  # Mellinger's integrated reference starts where the drones are
+        onboard = onboard.replace(reference=jnp.broadcast_to(jnp.asarray(p0, jnp.float32), onboard.reference.shape))
+    state = state.replace(layout=lay, data=data, onboard=onboard)
+    state, sensed = sim.step(state, jnp.zeros((1, n, 3)))  # one zero step: the sensed state of the new layout
+
+    ctl = FlightController(b, n, safety=SafetyConfig(finished_are_neighbours=False), estimation=estimation)
+    ctl.reset(**course_from_meta(b, course))
+    t_end = float(a["time"][control[-1]])
+    release = np.asarray(meta.get("release_times") or np.zeros(n), np.float64)
+    rows = collections.defaultdict(list)
+    t_start = float(np.asarray(sensed.time)[0])
+    for _ in range(cfg.max_steps):
+        host = jax.device_get(sensed)
+        t = float(np.asarray(host.time)[0]) - t_start
+        if bool(np.asarray(host.done)[0] > 0) or t > t_end + 1e-6:
+            break
+        pos = np.asarray(host.pos[0], np.float64)
+        res = ctl.step(pos, np.asarray(host.quat[0], np.float64), np.full(n, t), now=t,
+                       obstacles=Obstacles(pos=np.asarray(host.cyl_pos[0]), radius=radius, present=seen),
+                       hold=t < release - 1e-9)
+        for name, v in (("time", t), ("pos", pos), ("quat", host.quat[0]), ("raw", res.nominal),
+                        ("filtered", res.velocity), ("intervened", res.intervened), ("hover", res.hover),
+                        ("land", res.land), ("target", res.target), ("released", t >= release - 1e-9),
+                        ("obstacle_xy", np.asarray(host.cyl_pos[0])[:m])):
+            rows[name].append(np.asarray(v))
+        state, sensed = sim.step(state, jnp.asarray(res.velocity[None], jnp.float32))
+    T = len(rows["time"])
+    arrays = {k: np.stack(v) for k, v in rows.items()}
+    arrays.update(phase=np.full(T, record.PHASES.index("control"), np.int8), pose_age=np.zeros((T, n)),
+                  estimate=np.full((T, n, 3), np.nan), vbat=np.full((T, n), np.nan), supervisor=np.full((T, n), -1),
+                  latency=np.full(T, np.nan), lateness=np.full(T, np.nan),
+                  pose_times=np.zeros(0))
+    metrics = {k: float(np.asarray(v)[0]) for k, v in jax.device_get(sensed.metrics).items()}
+    meta_out = {**{k: meta.get(k) for k in ("scenario", "kind", "names", "uris", "course", "obstacles",
+                                             "obstacle_radius", "gate_half_opening", "release_times")},
+                "format": "aswarm-flight-record", "version": 1, "status": "sitl", "reason": "",
+                "mocap": f"SITL of {flight}", "bundle": str(b.path), "rate_hz": b.rate_hz, "metrics": metrics,
+                "events": [], "sequence": [], "timing": {}}
+    record.write_record(out, arrays, meta_out)
+    return {"steps": T, "seconds": T / b.rate_hz, "record": str(out), **metrics}
+
+
+def course_from_meta(bundle: Bundle, course: dict) -> dict:
+    """reset() arguments of the controller from a flight record's course."""
+    if bundle.kind == "track":
+        return {"gates": np.asarray(course["gates"], np.float64)}
+    return {"goals": np.asarray(course["goals"], np.float64)}
