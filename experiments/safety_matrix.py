@@ -56,6 +56,9 @@ SITL_EPISODES = 2_000
 FAST = 1.5
 RACE_SLOTS = 8  # the race's static cylinders
 DYNAMIC_MOVING = (1, 2, 3)
+# The swarm cells' drones observe their 3 nearest neighbours: the layout of a 4-drone policy (3 others) and of the
+# 16-drone one trained with --env max_neighbours=3, so both fly every swarm size.
+SWARM_NEIGHBOURS = 3
 COLLISION_KINDS = ("obstacle", "drone", "gate", "floor", "bounds")  # evaluate.COLLISION_KINDS, without JAX
 SHIPPED = "pretrained"
 DEFAULT_POLICIES = {"race": SHIPPED, "dynamic": "pretrained:dynamic"}  # where shipped
@@ -63,10 +66,12 @@ DEFAULT_POLICIES = {"race": SHIPPED, "dynamic": "pretrained:dynamic"}  # where s
 KINDS = {
     "race": f"a race policy: 4 drones, {RACE_SLOTS} static cylinders (default: {SHIPPED}, the shipped one)",
     "race-moving": f"a race policy observing {RACE_SLOTS} + 2 cylinders (trained with num_moving=2)",
-    "race-swarm": "a race policy observing its K nearest drones (--env max_neighbours=K), so it flies 8 and 16",
+    "race-swarm": f"a race policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env max_neighbours="
+                  f"{SWARM_NEIGHBOURS}), so it flies 8 and 16",
     "obstacles": "an obstacles policy: 4 drones",
-    "obstacles-swarm": "an obstacles policy observing its K nearest drones (--env max_neighbours=K); SITL flies "
-                       "obstacles-16 only with one trained on 16 drones (a bundle flies the swarm it was trained for)",
+    "obstacles-swarm": f"an obstacles policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env "
+                       f"max_neighbours={SWARM_NEIGHBOURS}); SITL flies obstacles-16 only with one trained on 16 "
+                       "drones (a bundle flies the swarm it was trained for)",
     "lab": "a lab policy: 2 drones, 3 cylinders",
     "dynamic": "a dynamic policy: trained on the dynamic preset (3 cylinder slots, 1 to 3 of them moving)",
 }
@@ -89,7 +94,8 @@ def _moving(k: int, fast: bool) -> tuple[str, ...]:
 
 
 def _drones(n: int) -> tuple[str, ...]:
-    return (f"num_agents={n}",)
+    """n drones, each observing its SWARM_NEIGHBOURS nearest: any policy of that layout flies every swarm size."""
+    return (f"num_agents={n}", f"max_neighbours={SWARM_NEIGHBOURS}")
 
 
 CELLS: tuple[Cell, ...] = (

@@ -126,3 +126,20 @@ def test_rollout_mpc_returns_each_episodes_metrics():
 def test_bad_config_is_refused(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         MPCConfig(**bad)
+
+
+def test_rollout_mpc_starts_the_episodes_its_reset_keys_name():
+    # One step: each episode's clearance is its layout's, so swapping the keys swaps the episodes.
+    env = envs.make("obstacles", num_agents=2, episode_seconds=env_dt(), layout_jitter=1.0)
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    config = MPCConfig(samples=4, horizon=2)
+    a = rollout_mpc(env, config, 2, jax.random.PRNGKey(0), chunk=1, reset_keys=keys)["min_clearance"]
+    b = rollout_mpc(env, config, 2, jax.random.PRNGKey(0), chunk=1, reset_keys=keys[::-1])["min_clearance"]
+    assert abs(float(a[0] - a[1])) > 0.05  # two different layouts
+    np.testing.assert_allclose(np.asarray(b), np.asarray(a)[::-1], atol=0.02)
+    with pytest.raises(ValueError, match="3 keys for 2 episodes"):
+        rollout_mpc(env, config, 2, jax.random.PRNGKey(0), reset_keys=jax.random.split(keys[0], 3))
+
+
+def env_dt() -> float:
+    return 1.0 / envs.EnvConfig().policy_freq

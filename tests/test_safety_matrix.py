@@ -91,7 +91,7 @@ def test_cells_of_the_issue():
     period = float(by["dynamic-2-fast"].overrides[-1].split("=")[1])
     assert period * 1.5 == pytest.approx(mod.EnvConfig.moving_period)
     assert by["race-moving2"].overrides == ("num_obstacles=8", "num_moving=2", "min_moving=2", "max_moving=2")
-    assert by["obstacles-64"].overrides == ("num_agents=64",)
+    assert by["obstacles-64"].overrides == ("num_agents=64", "max_neighbours=3")
     # A cell's own policy wins over its kind's.
     policies = {"dynamic": "runs/a", "dynamic-1": "runs/b"}
     assert mod.policy_of(by["dynamic-1"], policies) == ("dynamic-1", "runs/b")

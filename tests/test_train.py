@@ -355,3 +355,21 @@ def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
     assert (cfg.total_steps, cfg.checkpoint_minutes) == (32 * 8 * 2, 0.5)
     assert [r["update"] for r in runner.read_metrics(run)] == [1, 2]
     assert checkpoint.manager(run).latest_step() == 2
+
+
+def test_progress_shows_the_chunks_episodes_weighted_and_keeps_them_through_a_chunk_without_any():
+    from aswarm.training.runner import chunk_episode_means
+
+    # Trial 0 ends 2 episodes at success 1.0 and 6 at 0.5 (update means); trial 1 ends none.
+    metrics = {"episodes": np.array([[2.0, 0.0, 6.0], [0.0, 0.0, 0.0]]),
+               "episode/success": np.array([[1.0, 0.0, 0.5], [0.0, 0.0, 0.0]]),
+               "episode/collision": np.array([[0.0, 0.0, 0.25], [0.0, 0.0, 0.0]]),
+               "episode/episode_return": np.array([[10.0, 0.0, 2.0], [0.0, 0.0, 0.0]])}
+    shown = chunk_episode_means(metrics, None)
+    np.testing.assert_allclose(shown["episode/success"][0], (2 * 1.0 + 6 * 0.5) / 8)
+    np.testing.assert_allclose(shown["episode/collision"][0], 6 * 0.25 / 8)
+    np.testing.assert_allclose(shown["episode/episode_return"][0], (20 + 12) / 8)
+    assert np.isnan(shown["episode/success"][1])  # nothing seen yet
+    quiet = {k: np.zeros_like(v) for k, v in metrics.items()}
+    again = chunk_episode_means(quiet, shown)
+    np.testing.assert_allclose(again["episode/success"], shown["episode/success"])

@@ -478,19 +478,24 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
 
 # ------------------------------------------------------------------ evaluation
 def rollout_mpc(env: SwarmEnv, config: MPCConfig, episodes: int, key: jax.Array,
-                chunk: int = 50) -> dict[str, jax.Array]:
+                chunk: int = 50, reset_keys: jax.Array | None = None) -> dict[str, jax.Array]:
     """Run ``episodes`` vmapped worlds with the MPC until every one has ended.
 
     Returns each episode's metrics (``env.metrics`` on its first ``done`` step), ``[episodes]`` arrays,
     as :func:`aswarm.analysis.evaluate.rollout_episodes` records them. Steps run in chunks of ``chunk`` inside
     a ``while_loop`` that stops once all episodes have ended, so fast successes cost less than the time limit.
+    ``reset_keys`` ([episodes] keys) start the worlds where a policy's evaluation starts them (episode i of
+    ``aswarm eval --seed S`` resets with ``split(PRNGKey(S), episodes)[i]``), for a comparison on the same
+    episodes; by default they come from ``key``.
     """
     policy = make_mpc_policy(env, config)
     reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+    if reset_keys is not None and reset_keys.shape[0] != episodes:
+        raise ValueError(f"invalid reset_keys: {reset_keys.shape[0]} keys for {episodes} episodes: allowed: one each")
 
     def run(key):
         k_reset, k_act = jax.random.split(key)
-        state = reset(jax.random.split(k_reset, episodes))
+        state = reset(jax.random.split(k_reset, episodes) if reset_keys is None else reset_keys)
         rec = jax.tree.map(jnp.zeros_like, state.metrics)
         ended = jnp.zeros(episodes, bool)
 

@@ -77,6 +77,26 @@ class LoopResult:
     diverged: tuple[bool, ...]  # per trial: loss or parameters became NaN/Inf
 
 
+EPISODE_SHOWN = ("episode/episode_return", "episode/success", "episode/collision")
+
+
+def chunk_episode_means(metrics: dict, previous: dict | None) -> dict:
+    """Per trial, the chunk's episode metrics weighted by the episodes each update ended.
+
+    A trial that ended no episode in the chunk keeps its previous values: when every world times out
+    together (a swarm that does not finish yet), most updates end none, and showing their zeros would
+    hide the chunk's real figures.
+    """
+    ended = np.asarray(metrics["episodes"], np.float64)  # [trials, k]
+    count = ended.sum(-1)
+    out = {}
+    for name in EPISODE_SHOWN:
+        mean = (np.asarray(metrics[name], np.float64) * ended).sum(-1) / np.maximum(count, 1.0)
+        before = previous[name] if previous is not None else np.full_like(mean, np.nan)
+        out[name] = np.where(count > 0, mean, before)
+    return out
+
+
 def truncate_log(path: Path, update: int) -> None:
     """Drop log rows past the restored update (they will be produced again); atomic, as every log write is."""
     if not path.exists():
@@ -143,6 +163,7 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
     bar = tqdm(total=total, initial=start, unit="upd", disable=not (progress and primary), dynamic_ncols=True,
                desc=desc)
     last_save, update = time.monotonic(), start
+    shown = None
     try:
         t_prev = time.monotonic()
         while update < stop:
@@ -180,13 +201,13 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
                             if name != "update":
                                 writer.add_scalar(name, v, row["update"])
             update += k
+            shown = chunk_episode_means(metrics, shown)
             if len(trial_dirs) == 1:
-                last = {name: float(v[0, -1]) for name, v in metrics.items()}
-                bar.set_postfix(sps=f"{sps:,.0f}", ret=f"{last['episode/episode_return']:.1f}",
-                                success=f"{last['episode/success']:.2f}", coll=f"{last['episode/collision']:.2f}")
+                bar.set_postfix(sps=f"{sps:,.0f}", ret=f"{shown['episode/episode_return'][0]:.1f}",
+                                success=f"{shown['episode/success'][0]:.2f}",
+                                coll=f"{shown['episode/collision'][0]:.2f}")
             else:
-                bar.set_postfix(sps=f"{sps:,.0f}",
-                                best_success=f"{np.nanmax(np.asarray(metrics['episode/success'])[:, -1]):.2f}")
+                bar.set_postfix(sps=f"{sps:,.0f}", best_success=f"{np.nanmax(shown['episode/success']):.2f}")
             bar.update(k)
             if update >= stop or now - last_save > 60 * config.checkpoint_minutes:
                 checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
