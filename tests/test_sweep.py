@@ -149,7 +149,7 @@ def test_one_host_loop_marks_a_diverged_trial_and_stops_when_every_trial_has(tmp
         w = jnp.where((update > limit)[:, None], jnp.nan, ts.params["w"] + k)
         zeros = jnp.zeros_like(loss)
         metrics = {"train/loss": loss, "episode/success": zeros, "episode/episode_return": zeros,
-                   "episode/collision": zeros}
+                   "episode/collision": zeros, "episodes": zeros}
         return ts.replace(params={"w": w}, update=update), metrics
 
     mesh = sharding.make_mesh(2, cfg.num_envs, jax.devices()[:1])
