@@ -113,7 +113,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from aswarm.flight import export
 
-    out = export.export(args.checkpoint, args.out, force=args.force)
+    out = export.export(args.checkpoint, args.out, force=args.force, env_overrides=args.env)
     print(f"bundle: {out}  (policy.npz, manifest.json)")
     print(f"check it in the simulator: aswarm sitl --bundle {out} --episodes 200")
     return 0
@@ -283,6 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained'")
     x.add_argument("--out", required=True, type=Path, help="bundle folder to create")
     x.add_argument("--force", action="store_true", help="replace an existing bundle")
+    x.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE",
+                   help="fly another environment with the same observation layout, e.g. --env num_agents=16 --env "
+                        "max_neighbours=3 for a 4-drone policy that observed its 3 others")
     x.set_defaults(func=cmd_export)
 
     si = sub.add_parser("sitl", help="fly a bundle's numpy runtime in closed loop against the simulator")

@@ -1,21 +1,22 @@
 """The safety matrix of issue #13: success, collisions by kind, clearance and the safety filter's load, per cell.
 
-    python experiments/safety_matrix.py                           # every cell; the race's with the shipped policy
-    python experiments/safety_matrix.py --policy obstacles=runs/obstacles-m13 --policy dynamic=runs/dynamic \\
-        --policy obstacles-swarm=runs/obstacles16-k3 --policy race-swarm=runs/race-k3
+    python experiments/safety_matrix.py                           # every cell, with the shipped policies
+    python experiments/safety_matrix.py --policy dynamic=runs/dynamic --policy obstacles-swarm=runs/obstacles16
     python experiments/safety_matrix.py --only race,dynamic-3     # a subset (the other cells stay as cached)
     python experiments/safety_matrix.py --quick                   # 8 episodes a cell, its own cache: CI
-    make safety-matrix ARGS="--policy obstacles=runs/obstacles-m13"
+    make safety-matrix ARGS="--policy lab=runs/lab"
 
 A cell is a scenario with env overrides, flown by the policy of the kind it needs (``--policy KIND=RUN``, or
-``--policy CELL=RUN`` for one cell; ``race`` defaults to ``pretrained``). A cell whose policy was not given is
+``--policy CELL=RUN`` for one cell; by default the shipped ones: ``pretrained`` for the race and its swarms,
+``pretrained:dynamic``, ``pretrained:obstacles`` for ``obstacles`` and its swarms). A cell whose policy was not given is
 listed as not run; one whose policy observes another layout (other numbers of cylinders or neighbours) is listed
 with the reason. Dynamic cells move exactly k of the ``dynamic`` preset's 3 cylinder slots (``min_moving =
 max_moving = k``; the others are absent), so one policy trained on the preset (1 to 3 moving) flies all six. "fast"
 is 1.5x the default speed of the moving cylinders (the same amplitude over a period 1.5x shorter).
 
 The headline cells (race, dynamic-3, obstacles-16) are also flown in SITL (``aswarm sitl``: the numpy flight
-runtime on poses, with 2 mm of position noise and 40 ms of latency), from a bundle exported once per policy into
+runtime on poses, with 2 mm of position noise and 40 ms of latency), from a bundle exported once per policy (and per
+swarm size: ``aswarm export --env num_agents=16``) into
 ``OUT/bundles/``. The flight runtime does not report its filter's slack, so SITL rows have no infeasible rate.
 
 Episodes start from ``--seed`` (default 50000): the shipped race policy was chosen on the episodes of seeds
@@ -59,9 +60,13 @@ DYNAMIC_MOVING = (1, 2, 3)
 # The swarm cells' drones observe their 3 nearest neighbours: the layout of a 4-drone policy (3 others) and of the
 # 16-drone one trained with --env max_neighbours=3, so both fly every swarm size.
 SWARM_NEIGHBOURS = 3
+SWARM_FIELDS = ("num_agents", "max_neighbours")  # what a bundle is exported for (SITL flies the rest as overrides)
 COLLISION_KINDS = ("obstacle", "drone", "gate", "floor", "bounds")  # evaluate.COLLISION_KINDS, without JAX
 SHIPPED = "pretrained"
-DEFAULT_POLICIES = {"race": SHIPPED, "dynamic": "pretrained:dynamic"}  # where shipped
+# The 4-drone policies observe 3 other drones: they fly the swarm cells too (the obstacles one better than a policy
+# trained at 16 drones, README).
+DEFAULT_POLICIES = {"race": SHIPPED, "race-swarm": SHIPPED, "dynamic": "pretrained:dynamic",
+                    "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles"}
 # A policy's kind: what it must have been trained on to fit its cells' observation layout.
 KINDS = {
     "race": f"a race policy: 4 drones, {RACE_SLOTS} static cylinders (default: {SHIPPED}, the shipped one)",
@@ -70,8 +75,8 @@ KINDS = {
                   f"{SWARM_NEIGHBOURS}), so it flies 8 and 16",
     "obstacles": "an obstacles policy: 4 drones",
     "obstacles-swarm": f"an obstacles policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env "
-                       f"max_neighbours={SWARM_NEIGHBOURS}); SITL flies obstacles-16 only with one trained on 16 "
-                       "drones (a bundle flies the swarm it was trained for)",
+                       f"max_neighbours={SWARM_NEIGHBOURS}); SITL flies obstacles-16 from a bundle exported for 16 "
+                       "drones (aswarm export --env)",
     "lab": "a lab policy: 2 drones, 3 cylinders",
     "dynamic": "a dynamic policy: trained on the dynamic preset (3 cylinder slots, 1 to 3 of them moving)",
 }
@@ -213,17 +218,19 @@ def one_line(e: Exception) -> str:
     return " ".join(str(e).split())
 
 
-def bundle_for(key: str, run: str, out: Path) -> Path:
-    """The bundle of ``run`` in ``out/bundles/key``, exported (atomically, by write_bundle) unless it is there."""
+def bundle_for(name: str, run: str, out: Path, swarm: list[str]) -> Path:
+    """The bundle of ``run`` in ``out/bundles/name`` for the swarm ``swarm`` (num_agents, max_neighbours overrides;
+    a bundle flies the swarm it was exported for), exported (atomically, by write_bundle) unless it is there."""
     from aswarm.flight import export
 
-    path = out / "bundles" / key
+    path = out / "bundles" / name
     manifest = path / "manifest.json"
     if manifest.is_file():
         source = json.loads(manifest.read_text()).get("source", {})
-        if source.get("checkpoint") == run and source.get("trained_updates") == newest_step(run):
+        if (source.get("checkpoint") == run and source.get("trained_updates") == newest_step(run)
+                and source.get("export_env_overrides", []) == sorted(swarm)):
             return path
-    return export.export(run, path, force=path.exists())
+    return export.export(run, path, force=path.exists(), env_overrides=swarm)
 
 
 def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int, out: Path) -> dict:
@@ -237,7 +244,9 @@ def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int
         if mode == "sim":
             result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, list(cell.overrides))
         else:
-            result = sitl.run_sitl(bundle_for(key, run, out), cell.scenario, episodes, seed, noise=SITL_NOISE_M,
+            swarm = [o for o in cell.overrides if o.split("=")[0] in SWARM_FIELDS]
+            bundle = bundle_for(f"{key}-{cell.name}" if swarm else key, run, out, swarm)
+            result = sitl.run_sitl(bundle, cell.scenario, episodes, seed, noise=SITL_NOISE_M,
                                    latency_ms=SITL_LATENCY_MS, env_overrides=list(cell.overrides))
     except ValueError as e:  # above all: the policy's observation layout (or the bundle's swarm) is not the cell's
         return {"status": "not run", "reason": f"the policy cannot fly it: {one_line(e)}", "result": None}

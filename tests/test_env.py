@@ -319,3 +319,20 @@ def test_scene_model_holds_obstacles_and_gates_as_mocap_bodies():
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     assert np.isfinite(d.xpos).all()
+
+
+@pytest.mark.parametrize("n", [16, 32, 64])
+def test_crossing_swarms_start_apart_inside_the_arena_in_lines_of_at_most_16(n):
+    env = envs.make("obstacles", num_agents=n, max_neighbours=3, layout_jitter=0.0)
+    lay = jax.jit(env.reset)(jax.random.PRNGKey(0)).layout
+    start, goal = np.asarray(lay.start_pos), np.asarray(lay.waypoints)[:, 0]
+    lo, hi = np.array(env.config.arena_low), np.array(env.config.arena_high)
+    for p in (start, goal):
+        gap = np.linalg.norm(p[:, None] - p[None], axis=-1) + np.eye(n) * 9
+        assert gap.min() == pytest.approx(5.0 / 15, abs=1e-5)  # 16 lanes over 5 m of the 7 m wide arena
+        assert np.all(p[:, :2] >= lo[:2] + 0.3 - 1e-5) and np.all(p[:, :2] <= hi[:2] - 0.3 + 1e-5)
+    lines = sorted(set(np.round(start[:, 0], 4)))
+    assert len(lines) == n // 16  # 32: lines at x = -4 and -4.5; 64: -4, -4.4, -4.8, -5.2
+    assert lines[-1] == pytest.approx(-4.0) and (n < 64 or lines[0] == pytest.approx(-5.2))
+    # Mirrored: every drone crosses the same 8 m (plus its line's depth on both sides).
+    np.testing.assert_allclose(goal[:, 0] + start[:, 0], 0.0, atol=1e-5)

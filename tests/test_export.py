@@ -225,3 +225,28 @@ def test_a_mellinger_policy_tells_the_flight_side_to_stream_full_states(tmp_path
     assert d["setpoint"] == "full_state" and d["reference_leash"] == 0.3 and d["mellinger"]["kp_xy"] == 0.4
     # Its velocity lag is Mellinger's, measured: quicker than the PID's 0.34 s.
     assert 0.15 < d["velocity_lag"][0] < 0.3
+
+
+def test_a_k_nearest_policy_exports_for_another_swarm_size_and_flies_it(tmp_path, capsys):
+    from aswarm.flight.runtime import FlightController
+
+    out = tmp_path / "b8"
+    assert cli.main(["export", "--checkpoint", "pretrained:obstacles", "--out", str(out), "--env", "num_agents=8",
+                     "--env", "max_neighbours=3"]) == 0
+    b = fb.load_bundle(out)
+    assert b.num_agents == 8 and b.manifest["env"]["max_neighbours"] == 3
+    assert b.manifest["source"]["export_env_overrides"] == ["max_neighbours=3", "num_agents=8"]
+    assert b.manifest["source"]["env_config"]["num_agents"] == 8  # what `aswarm sitl` flies
+    # The runtime flies 8 drones with it: finite commands within the limit, one per drone.
+    ctl = FlightController(b, 8)
+    ctl.reset(goals=np.stack([np.arange(8) * 0.5, np.full(8, 2.0), np.ones(8)], -1))
+    pos = np.stack([np.arange(8) * 0.5, np.zeros(8), np.ones(8)], -1)
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (8, 1))
+    step = ctl.step(pos, quat, np.zeros(8), now=0.0)
+    assert step.velocity.shape == (8, 3) and np.all(np.isfinite(step.velocity))
+    assert np.all(np.abs(step.velocity) <= b.manifest["env"]["max_speed"] + 1e-9)
+    # A field that changes what the policy observes is refused in one line, and nothing is written.
+    assert cli.main(["export", "--checkpoint", "pretrained:obstacles", "--out", str(tmp_path / "b3"), "--env",
+                     "num_obstacles=3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "the observation layouts differ" in err and not (tmp_path / "b3").exists()

@@ -22,9 +22,9 @@ def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
     mod = _module()
     out = tmp_path / "results"
     # race (4 drones, the shipped policy, also in SITL), race-moving2 (10 cylinders: the shipped policy does not fit),
-    # obstacles (no policy given) and dynamic-1 (the shipped dynamic policy by default, 1 of its 3 slots moving):
+    # lab (no policy given) and dynamic-1 (the shipped dynamic policy by default, 1 of its 3 slots moving):
     # every kind of row in one short run.
-    argv = ["--quick", "--episodes", "2", "--only", "race,race-moving2,obstacles,dynamic-1", "--policy",
+    argv = ["--quick", "--episodes", "2", "--only", "race,race-moving2,lab,dynamic-1", "--policy",
             "race-moving=pretrained", "--out", str(out)]
     assert mod.main(argv) == 0
     err = capsys.readouterr().err
@@ -43,12 +43,11 @@ def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
     assert misfit["status"] == "not run" and misfit["reason"].startswith("the policy cannot fly it: ")
     # 10 cylinders and 3 neighbours observed where the policy observes 8 and 3, in one line
     assert "\n" not in misfit["reason"] and "gives 10 and 3: the observation layouts differ" in misfit["reason"]
-    assert rows[("obstacles", "sim")]["reason"] == "no obstacles policy (--policy obstacles=RUN)"
+    assert rows[("lab", "sim")]["reason"] == "no lab policy (--policy lab=RUN)"
     assert rows[("dynamic-3", "sitl")]["status"] == "not run"
-    assert rows[("lab", "sim")]["status"] == "not run"
     md = (out / "safety_matrix_quick.md").read_text()
     assert "| race | `race` | pretrained | 2 |" in md
-    assert "not run: no obstacles policy (--policy obstacles=RUN)" in md
+    assert "not run: no lab policy (--policy lab=RUN)" in md
     assert "| dynamic-1-fast | `dynamic` min_moving=1 max_moving=1 moving_period=2.667 |" in md
     assert not (out / "safety_matrix.md").exists() and not (out / "cells").exists()  # quick never mixes with full
     cells = {p.name: p.stat().st_mtime_ns for p in (out / "cells-quick").iterdir()}

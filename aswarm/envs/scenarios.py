@@ -22,6 +22,10 @@ from aswarm.core import geometry as core_geometry
 from aswarm.envs.config import EnvConfig
 from aswarm.envs.presets import SCENARIOS
 
+# The crossing's start line holds at most this many drones across the arena; more stand in lines behind it.
+CROSSING_LANES = 16
+CROSSING_WALL_GAP = 0.3  # m between the arena's wall and the last line of starts (or goals)
+
 
 @struct.dataclass
 class Layout:
@@ -148,6 +152,23 @@ def _hover_geometry(cfg: EnvConfig) -> Geometry:
     return Geometry(np.zeros((0, 3)), np.zeros(0), z, c, np.array([1.0, 0.0]), c, z, z, z)
 
 
+def _crossing_offsets(n: int, cfg: EnvConfig, geo: Geometry) -> np.ndarray:
+    """[n, 2] (behind, lateral) offsets of the crossing's starts (and, mirrored, goals).
+
+    One line across the arena of at most CROSSING_LANES drones (16 stand 0.33 m apart in the default arena); more
+    stand in further lines behind it, start_spacing apart or closer, so the last line keeps CROSSING_WALL_GAP to the
+    wall. A single line of 32 would put drones 0.16 m apart: touching at the start.
+    """
+    per_line = min(n, CROSSING_LANES)
+    lines = math.ceil(n / per_line)
+    line, lane = np.arange(n) // per_line, np.arange(n) % per_line
+    width = cfg.arena_high[1] - cfg.arena_low[1] - 2.0
+    lateral = (lane - (per_line - 1) / 2) * min(1.0, width / max(per_line - 1, 1))
+    room = min(geo.start_center[0] - cfg.arena_low[0], cfg.arena_high[0] - geo.goal_center[0]) - CROSSING_WALL_GAP
+    spacing = min(cfg.start_spacing, room / (lines - 1)) if lines > 1 else 0.0
+    return np.stack([line * spacing, lateral], -1)
+
+
 def _start_grid(n: int, spacing: float) -> np.ndarray:
     """[n, 2] (behind, lateral) offsets of a compact grid, front row at 0."""
     cols = math.ceil(math.sqrt(n))
@@ -203,9 +224,7 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitud
     heading = jnp.asarray(geo.start_heading)
     left = jnp.array([-heading[1], heading[0]])
     if kind == "crossing":
-        width = cfg.arena_high[1] - cfg.arena_low[1] - 2.0
-        lanes = (np.arange(n) - (n - 1) / 2) * min(1.0, width / max(n - 1, 1))
-        offs = np.stack([np.zeros(n), lanes], -1)
+        offs = _crossing_offsets(n, cfg, geo)
     elif cfg.start_formation == "column":
         # Single file up to 4 drones; more fly in side-by-side files at most 4 deep, so the column stays
         # on the straight stretch behind the start.
@@ -222,7 +241,9 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitud
     if kind == "track":
         waypoints = jnp.broadcast_to(gate_pos, (n, g, 3))
     elif kind == "crossing":
-        goal = jnp.asarray(geo.goal_center) + jnp.concatenate([offs[:, 1:] * left, jnp.zeros((n, 1))], -1)
+        # Mirrored: a drone standing in a line behind the start has its goal in a line beyond the goal line.
+        goal_xy = offs[:, :1] * heading + offs[:, 1:] * left
+        goal = jnp.asarray(geo.goal_center) + jnp.concatenate([goal_xy, jnp.zeros((n, 1))], -1)
         waypoints = (goal + u(k_goal, (n, 3), 0.2 * j) * jnp.array([1.0, 1.0, 0.5]))[:, None]
     else:
         direction = jax.random.normal(k_goal, (n, 3))

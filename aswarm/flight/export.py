@@ -131,8 +131,9 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
 
 def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Path, *, force: bool = False,
                   source: str = "", trained_updates: int = 0, config_text: str | None = None,
-                  env: SwarmEnv | None = None) -> Path:
-    """Write the bundle of in-memory ``params`` and ``obs_norm`` (as restored from a checkpoint)."""
+                  env: SwarmEnv | None = None, export_env_overrides: list[str] | None = None) -> Path:
+    """Write the bundle of in-memory ``params`` and ``obs_norm`` (as restored from a checkpoint) for ``env`` (default:
+    the run's own)."""
     from aswarm.agents.train import make_env
 
     env = env or make_env(config)
@@ -142,23 +143,38 @@ def export_policy(config: TrainConfig, params: dict, obs_norm, out_dir: str | Pa
                          "runtime together with the environment")
     text = config_text if config_text is not None else config_json(config, env)
     manifest = build_manifest(config, env, source=source, trained_updates=trained_updates, config_text=text)
+    if export_env_overrides:
+        manifest["source"]["export_env_overrides"] = list(export_env_overrides)
     arrays = policy_arrays(params, obs_norm)
     out = fb.write_bundle(out_dir, arrays, manifest, force=force)
     fb.load_bundle(out)  # what the flight side will do: fail here, not at the field
     return out
 
 
-def export(checkpoint: str | Path, out_dir: str | Path, force: bool = False) -> Path:
+def export(checkpoint: str | Path, out_dir: str | Path, force: bool = False,
+           env_overrides: list[str] | None = None) -> Path:
     """Export a run folder's latest checkpoint (or a shipped policy, ``"pretrained[:NAME]"``) to the bundle folder
-    ``out_dir``."""
+    ``out_dir``.
+
+    ``env_overrides`` ("FIELD=VALUE") change the environment the bundle flies, as ``aswarm eval --env`` does, where
+    the policy's observation layout stays the same (a ValueError says why otherwise): above all another number of
+    drones for a policy observing its K nearest (``num_agents=16``, with ``max_neighbours=3`` for a 4-drone policy
+    trained observing all 3 others). The manifest records them under ``source.export_env_overrides``.
+    """
     from aswarm.analysis import evaluate
 
     out = Path(out_dir)
     if out.exists() and not force:  # before the slow restore
         raise fb.BundleError(f"bundle {out} already exists: allowed: a new --out folder, or --force to overwrite it")
-    config, restored = evaluate.load(checkpoint)
+    env = None
+    if env_overrides:
+        config, agent, restored = evaluate.load_agent(checkpoint, None, list(env_overrides))
+        env = agent.env
+    else:
+        config, restored = evaluate.load(checkpoint)
     run_dir = evaluate.run_folder(checkpoint)
     cfg_file = run_dir / "config.json"
     text = cfg_file.read_text() if cfg_file.is_file() else None
     return export_policy(config, restored["params"], restored["obs_norm"], out, force=force, source=str(checkpoint),
-                         trained_updates=int(restored["update"]), config_text=text)
+                         trained_updates=int(restored["update"]), config_text=text, env=env,
+                         export_env_overrides=sorted(env_overrides or []))
