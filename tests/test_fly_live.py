@@ -455,3 +455,12 @@ def test_the_cflib_link_makes_the_calls_of_bitcrazes_example(monkeypatch):
     assert link.lost() == {}
     link.cfs[uris[0]].connection_lost.call(uris[0], "Too many packets lost")
     assert link.lost() == {uris[0]: "Too many packets lost"}
+
+
+def test_a_moving_obstacles_velocity_is_the_line_fit_over_its_recent_poses():
+    from aswarm.flight.mocap import _slope
+
+    # 0.6 m/s in x, -0.2 m/s in y, sampled at 100 Hz; an old sample far off the line lies outside the window.
+    hist = [(-1.0, 9.0, 9.0)] + [(t, 1.0 + 0.6 * t, 2.0 - 0.2 * t) for t in np.arange(0.0, 0.1, 0.01)]
+    np.testing.assert_allclose(_slope(hist, window=0.2), [0.6, -0.2], atol=1e-9)
+    np.testing.assert_allclose(_slope(hist[:1], window=0.2), [0.0, 0.0])  # one pose: no velocity yet

@@ -30,6 +30,7 @@ from typing import Protocol
 
 import numpy as np
 
+from aswarm.core.estimation import slope_weights
 from aswarm.flight.clock import Clock
 
 CSV_COLUMNS = ("t", "drone", "x", "y", "z", "qw", "qx", "qy", "qz")
@@ -197,9 +198,9 @@ def _slope(hist, window: float) -> np.ndarray:
     a = a[a[:, 0] >= a[-1, 0] - window]
     if len(a) < 2:
         return np.zeros(2)
-    t = a[:, 0] - a[:, 0].mean()
-    den = float(t @ t)
-    return np.zeros(2) if den <= 0 else (t @ (a[:, 1:] - a[:, 1:].mean(0))) / den
+    if np.ptp(a[:, 0]) <= 0:
+        return np.zeros(2)
+    return slope_weights(a[:, 0]) @ a[:, 1:]  # the runtime's own line fit (core.estimation)
 
 
 def mock_rigid_bodies(bodies: Sequence[tuple[str, Sequence[float]]]) -> str:
