@@ -207,7 +207,7 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
                                 success=f"{shown['episode/success'][0]:.2f}",
                                 coll=f"{shown['episode/collision'][0]:.2f}")
             else:
-                bar.set_postfix(sps=f"{sps:,.0f}", best_success=f"{np.nanmax(shown['episode/success']):.2f}")
+                bar.set_postfix(sps=f"{sps:,.0f}", best_success=f"{np.fmax.reduce(shown['episode/success']):.2f}")
             bar.update(k)
             if update >= stop or now - last_save > 60 * config.checkpoint_minutes:
                 checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
