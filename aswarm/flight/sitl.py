@@ -109,6 +109,16 @@ def make_env(bundle: Bundle, scenario: str | None = None, env_overrides: list[st
     return env
 
 
+def exact_drone(env: envs.SwarmEnv, mass_scale: float = 1.0, thrust_scale: float = 1.0,
+                latency_ticks: int = 0) -> envs.SwarmEnv:
+    """The plant: one exact drone, "randomised" over ranges of one value each, so that its mass, thrust constant and
+    command latency (in controller ticks, compiled in only where there is some) are the run's."""
+    one = Randomization(mass=(mass_scale,) * 2, thrust_constant=(thrust_scale,) * 2, torque_constant=(1.0, 1.0),
+                        motor_tau=(1.0, 1.0), gains=(1.0, 1.0), latency=(latency_ticks / env.ticks,) * 2,
+                        mocap_noise=(0.0, 0.0), mocap_delay=(0, 0))
+    return envs.SwarmEnv(dataclasses.replace(env.config, randomize=one))
+
+
 def course(bundle: Bundle, layout) -> dict:
     """reset() arguments of the controller from a batch of simulator layouts (host arrays)."""
     if bundle.kind == "track":
@@ -148,12 +158,7 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
     b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
     env = make_env(b, scenario, env_overrides)
     latency, ticks = split_latency(latency_ms, env.config)
-    # The plant: one exact drone, "randomised" over ranges of one value each, so that its mass, thrust constant
-    # and command latency (in controller ticks, compiled in only where there is some) are this run's.
-    one = Randomization(mass=(mass_scale,) * 2, thrust_constant=(thrust_scale,) * 2, torque_constant=(1.0, 1.0),
-                        motor_tau=(1.0, 1.0), gains=(1.0, 1.0), latency=(ticks / env.ticks,) * 2,
-                        mocap_noise=(0.0, 0.0), mocap_delay=(0, 0))
-    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=one))
+    env = exact_drone(env, mass_scale, thrust_scale, ticks)
     cfg = env.config
     sim = simulator(cfg, episodes)
     state, sensed = sim.reset(jax.random.PRNGKey(seed))
@@ -262,10 +267,7 @@ def replay_flight(bundle: Bundle | str | Path, flight: str | Path, out: str | Pa
     p0 = np.asarray(a["pos"][first], np.float64)
     if not np.isfinite(p0).all():
         raise ValueError(f"flight record {flight}: not every drone had a pose when the control loop started")
-    env = make_env(b)
-    one = Randomization(mass=(1.0, 1.0), thrust_constant=(1.0, 1.0), torque_constant=(1.0, 1.0), motor_tau=(1.0, 1.0),
-                        gains=(1.0, 1.0), latency=(0.0, 0.0), mocap_noise=(0.0, 0.0), mocap_delay=(0, 0))
-    env = envs.SwarmEnv(dataclasses.replace(env.config, randomize=one))
+    env = exact_drone(make_env(b))
     cfg = env.config
     n, M = env.num_agents, cfg.num_cylinders
     if p0.shape != (n, 3):
