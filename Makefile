@@ -11,7 +11,7 @@ ARGS ?=
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e '.[dev,flight]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[dev,flight,interfaces,wandb,optuna]'
 	touch $(STAMP)
 
 install: $(STAMP)
