@@ -16,8 +16,9 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# CONFIG=FILE trains from a config file (its scenario is the file's); else SCENARIO (default race).
 train: $(STAMP)
-	$(VENV)/bin/aswarm train --scenario $(SCENARIO) $(ARGS)
+	$(VENV)/bin/aswarm train $(if $(CONFIG),--config $(CONFIG),--scenario $(SCENARIO)) $(ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadfile --durations=20

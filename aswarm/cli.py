@@ -16,6 +16,13 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _positive_int(text: str) -> int:
+    vals = _positive_ints(text)
+    if len(vals) != 1:
+        raise argparse.ArgumentTypeError(f"invalid number {text!r}: allowed: one positive integer")
+    return vals[0]
+
+
 def _positive_ints(text: str) -> list[int]:
     try:
         vals = [int(v) for v in text.split(",")]
@@ -48,9 +55,13 @@ def cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.trainer:
+        from aswarm.analysis import train_bench
+
+        return train_bench.main(args)
     from aswarm.analysis import bench
 
-    return bench.main_trainer(args) if args.trainer else bench.main(args)
+    return bench.main(args)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -61,23 +72,59 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     fields = config_args.overrides(args, TrainConfig)
     safety = config_args.nested_overrides(args, "safety_filter", SafetyFilterConfig)
-    if safety:  # --safety-filter.FIELD (or its old flat spelling, --gain-min ...)
+    if safety and args.config is None:  # --safety-filter.FIELD (or its old flat spelling, --gain-min ...)
         fields["safety_filter"] = SafetyFilterConfig(**safety)
+    wandb = None
+    if args.wandb:  # a missing package fails here, before anything compiles
+        from aswarm.training import wandb_log
+
+        wandb = wandb_log.WandbOptions(project=args.wandb_project, entity=args.wandb_entity, name=args.wandb_name,
+                                       mode=args.wandb_mode)
+        wandb_log.require()
     if args.resume:
         # Flags that may change (the budget, host-loop settings) are applied; any other is refused in one line.
-        for flag, given in (("--env", args.env), ("--out", args.out)):
+        for flag, given in (("--env", args.env), ("--out", args.out), ("--config", args.config)):
             if given:
                 raise ValueError(f"invalid {flag} with --resume: the run keeps its own; allowed with --resume: "
-                                 f"{', '.join('--' + k.replace('_', '-') for k in runner.RESUMABLE)}, --quiet")
-        run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet, changes=fields)
+                                 f"{', '.join('--' + k.replace('_', '-') for k in runner.RESUMABLE)}, --quiet, "
+                                 "--wandb")
+        run_dir = runner.train(None, args.resume, resume=True, progress=not args.quiet, changes=fields, wandb=wandb)
     else:
-        env_over = config_args.parse_assignments(args.env or [], envs.EnvConfig)
-        # Resolves the full env (the preset with the overrides) and checks it before anything compiles.
-        config = TrainConfig(**fields, env_overrides=tuple(sorted(env_over.items())))
-        run_dir = runner.train(config, args.out, progress=not args.quiet)
+        env_over = dict(sorted(config_args.parse_assignments(args.env or [], envs.EnvConfig).items()))
+        if args.config is not None:  # the file's fields, then the flags; a bad file fails here in one line
+            from aswarm.training import run_config
+
+            # The filter's flags replace the file's [safety_filter] field by field, not as a whole.
+            flags = {**fields, **{f"safety_filter.{k}": v for k, v in safety.items()}}
+            config = run_config.load_file(args.config, flags, env_over)
+        else:
+            # Resolves the full env (the preset with the overrides) and checks it before anything compiles.
+            config = TrainConfig(**fields, env_overrides=tuple(env_over.items()))
+        run_dir = runner.train(config, args.out, progress=not args.quiet, wandb=wandb)
+    _print_timing(run_dir)
     print(f"run folder: {run_dir}  (metrics.jsonl, tb/, checkpoints/, curves.png)")
     print(f"evaluate:   aswarm eval --checkpoint {run_dir} --episodes 1000")
     return 0
+
+
+def _print_timing(run_dir: Path) -> None:
+    """The run's own wall time and throughput (``timing.json``), so every user sees what a benchmark would."""
+    import json
+
+    from aswarm.training import runner
+
+    path = Path(run_dir) / runner.TIMING
+    if not path.exists():  # another process of a multi-host run wrote it
+        return
+    t = json.loads(path.read_text())
+    minutes, seconds = divmod(t["train_s"], 60)
+    line = f"trained {t['env_steps']:,} env steps in {int(minutes)} min {seconds:.0f} s"
+    if t["env_steps_per_s"]:
+        line += f": {t['env_steps_per_s']:,.0f} env-steps/s"
+    if t["steady_env_steps_per_s"]:
+        line += (f" ({t['steady_env_steps_per_s']:,.0f} after the first chunk, which took {t['first_chunk_s']:.0f} s "
+                 "with the compile)")
+    print(line + f" on {t['devices']} device(s)")
 
 
 def cmd_convert_run(args: argparse.Namespace) -> int:
@@ -216,10 +263,40 @@ def cmd_render(args: argparse.Namespace) -> int:
     path, fmt, backend = render.render_episode(ep, env.config, args.out, fps=args.fps, width=args.width,
                                                height=args.height, camera=args.camera)
     how = {"mp4": "mp4 via imageio-ffmpeg",
-           "gif": "GIF via Pillow" + (": imageio-ffmpeg is not installed" if args.out.suffix.lower() == ".mp4" else ""),
+           "gif": "GIF via Pillow" + (": imageio-ffmpeg cannot be imported (reinstall aswarm, which depends on it)"
+                                      if args.out.suffix.lower() == ".mp4" else ""),
            "png": "PNG frames: neither imageio-ffmpeg nor Pillow is installed"}[fmt]
     print(f"wrote {path} ({how}; MUJOCO_GL={backend})")
     return 0
+
+
+def _wrap(text: str) -> str:
+    import textwrap
+
+    return textwrap.fill(text, 100)
+
+
+def _train_epilog() -> str:
+    """Every env field with its type and its value in the default scenario's preset (--help)."""
+    import dataclasses
+
+    from aswarm import config_args
+    from aswarm.agents.config import TrainConfig
+    from aswarm.envs import EnvConfig, registry
+
+    preset = dataclasses.asdict(registry.preset(TrainConfig.scenario))
+    rows = []
+    for name, kind in config_args.leaf_types(EnvConfig).items():
+        if name == "scenario":  # --scenario's
+            continue
+        value = preset
+        for part in name.split("."):
+            value = value[part]
+        rows.append((name, config_args.kind_name(kind), repr(value)))
+    width = max(len(r[0]) for r in rows)
+    head = _wrap(f"environment fields (--env FIELD=VALUE, or an [env] table in --config): the defaults are the "
+                 f"{TrainConfig.scenario!r} preset's; other scenarios change some (`aswarm scenarios`)")
+    return head + ":\n" + "\n".join(f"  {n:<{width}}  {k:<5}  {v}" for n, k, v in rows)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -239,7 +316,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="virtualenv holding crazyflow, created on first use")
     b.add_argument("--no-peer", action="store_true", help="skip the crazyflow comparison")
     b.add_argument("--out", type=Path, default=Path("BENCHMARKS.md"))
-    b.add_argument("--trainer", action="store_true", help="end-to-end training throughput instead")
+    b.add_argument("--trainer", action="store_true",
+                   help="training instead: a timed `aswarm train` of the scenario's defaults and its evaluation, "
+                        "where one update's time goes, and each method's update throughput")
+    b.add_argument("--skip-run", action="store_true", help="with --trainer: skip the timed training run")
+    b.add_argument("--run-dir", type=Path, default=None,
+                   help="with --trainer: the timed run's folder (default runs/bench-SCENARIO-TIME)")
+    b.add_argument("--episodes", type=_positive_int, default=1000,
+                   help="with --trainer: unseen episodes the timed run's policy is evaluated on")
     b.set_defaults(func=cmd_bench)
 
     from aswarm import config_args
@@ -247,8 +331,15 @@ def build_parser() -> argparse.ArgumentParser:
     from aswarm.core.safety import LEGACY_FIELDS, SafetyFilterConfig
 
     t = sub.add_parser("train", help="train a swarm policy (MAPPO with attention-CBF by default)",
-                       description="Every TrainConfig field is a flag; env fields go through --env FIELD=VALUE. "
-                       f"Methods: {'; '.join(f'{k}: {v}' for k, v in METHODS.items())}.")
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description=_wrap("Every TrainConfig field is a flag; env fields go through --env "
+                                         "FIELD=VALUE; --config FILE sets any of them from a file, and flags "
+                                         "override it. Methods: "
+                                         + "; ".join(f"{k}: {v}" for k, v in METHODS.items()) + "."),
+                       epilog=_train_epilog())
+    t.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="TOML file of config fields ([safety_filter], [env], [env.cf] tables; e.g. configs/race.toml) "
+                        "or a run folder's config.json (reproduces that run's config); flags override it")
     t.add_argument("--out", type=Path, default=None, help="run folder (default runs/SCENARIO-METHOD-TIME)")
     t.add_argument("--resume", type=Path, default=None,
                    help="continue the run in this folder from its latest checkpoint, with its own config; only "
@@ -257,6 +348,15 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--env", action="append", metavar="FIELD=VALUE",
                    help="env config field of a new run, nested ones dotted (cf.mass=0.03), repeatable")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
+    w = t.add_argument_group("Weights & Biases (pip install 'aswarm[wandb]')")
+    w.add_argument("--wandb", action="store_true",
+                   help="also log what TensorBoard gets to Weights & Biases, with the run's config")
+    w.add_argument("--wandb-project", default="aswarm", metavar="NAME", help="default 'aswarm'")
+    w.add_argument("--wandb-entity", default=None, metavar="NAME", help="team or user (default: your default entity)")
+    w.add_argument("--wandb-name", default=None, metavar="NAME", help="run name (default: the run folder's name)")
+    w.add_argument("--wandb-mode", choices=("online", "offline"), default=None,
+                   help="default: WANDB_MODE if set, else online with an API key (WANDB_API_KEY or `wandb login`), "
+                        "else offline (upload later with `wandb sync`)")
     config_args.add_fields(t, TrainConfig, skip=("env_overrides",))
     config_args.add_nested_fields(t, "safety_filter", SafetyFilterConfig, aliases=LEGACY_FIELDS)
     t.set_defaults(func=cmd_train)
@@ -343,7 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="video of one episode with MuJoCo's offscreen renderer")
     episode_flags(r)
     r.add_argument("--out", type=Path, default=Path("episode.mp4"),
-                   help=".mp4 (needs imageio-ffmpeg, else a .gif is written) or .gif")
+                   help="video file: .mp4 (default episode.mp4; a .gif beside it where imageio-ffmpeg cannot be "
+                        "imported) or .gif")
     r.add_argument("--fps", type=int, default=25)
     r.add_argument("--width", type=int, default=640)
     r.add_argument("--height", type=int, default=480)

@@ -1,4 +1,5 @@
-"""Command-line flags from frozen config dataclasses: every field, typed, with a clear error on bad values."""
+"""Command-line flags and config-file tables from frozen config dataclasses: every field, typed, with a clear
+error on bad values."""
 
 from __future__ import annotations
 
@@ -171,6 +172,60 @@ def from_dict(cls, data: typing.Mapping, where: str, require_all: bool = False):
 def as_tuples(v):
     """JSON lists (nested too) back to the tuples a frozen config holds."""
     return tuple(as_tuples(x) for x in v) if isinstance(v, list) else v
+
+
+def coerce(where: str, kind, value):
+    """A value read from a TOML or JSON file as a field of type ``kind`` (ints widen to floats, lists become
+    tuples of the field's length); a one-line ValueError naming ``where`` and what is allowed otherwise."""
+    def fail(allowed: str):
+        raise ValueError(f"{where}: invalid value {value!r} ({type(value).__name__}); allowed: {allowed}")
+
+    if kind is bool:
+        return value if isinstance(value, bool) else fail("true or false")
+    if kind is int:
+        return value if isinstance(value, int) and not isinstance(value, bool) else fail("an integer")
+    if kind is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        fail("a finite number")
+    if kind is str:
+        return value if isinstance(value, str) else fail("a string")
+    if typing.get_origin(kind) is tuple:
+        inner = typing.get_args(kind)
+        if inner[-1] is Ellipsis:
+            if not isinstance(value, (list, tuple)):
+                fail("a list")
+            return tuple(coerce(where, inner[0], v) for v in value)
+        if not isinstance(value, (list, tuple)) or len(value) != len(inner):
+            fail(f"a list of {len(inner)} values")
+        return tuple(coerce(where, k, v) for k, v in zip(inner, value))
+    fail(f"nothing: a field of type {kind} is not set from a file")
+
+
+def flatten(table: typing.Mapping, leaves: typing.Collection[str], prefix: str = "") -> dict:
+    """Nested tables (TOML ``[cf]`` or ``cf.mass = ...``, JSON objects) -> ``{dotted name: value}``, walking every
+    table whose dotted name is not one of ``leaves`` (a table at a leaf stays whole: a sweep's ``{low, high}``)."""
+    out = {}
+    for key, value in table.items():
+        name = prefix + key
+        if isinstance(value, typing.Mapping) and name not in leaves:
+            out.update(flatten(value, leaves, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def table_fields(table: typing.Mapping, cls, where: str, what: str) -> dict:
+    """A TOML or JSON table of ``cls`` fields (nested configs as tables or dotted keys) -> ``{dotted name: typed
+    value}``. Unknown names and values of the wrong type are one-line ValueErrors that start with ``where``."""
+    out = {}
+    for key, value in flatten(table, leaf_types(cls)).items():
+        try:
+            kind = _field_type(key, cls, what)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        out[key] = coerce(f"{where}: {key}", kind, value)
+    return out
 
 
 def add_nested_fields(parser: argparse.ArgumentParser, name: str, cls,

@@ -19,6 +19,10 @@ try:
     from aswarm.analysis import bench
 except ImportError:  # trees from before the layout of issue #11
     from aswarm import bench
+try:
+    from aswarm.analysis.train_bench import time_trainer
+except ImportError:  # trees from before issue #15 kept it in bench
+    time_trainer = bench.time_trainer
 from aswarm.agents.config import TrainConfig
 
 
@@ -29,7 +33,7 @@ def main() -> None:
         out["env_1024"] = bench.time_env("race", 1024, 100).env_steps_per_s
     if which in ("train", "both"):
         config = TrainConfig(scenario="race", method="attention_cbf")
-        out["train"] = bench.time_trainer(config, updates=10)["env_steps_per_s"]
+        out["train"] = time_trainer(config, updates=10)["env_steps_per_s"]
     print(json.dumps(out), flush=True)
 
 

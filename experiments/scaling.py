@@ -52,12 +52,12 @@ def env_point(worlds: int, steps: int, **env) -> dict:
 
 def train_point(worlds: int, rollout_steps: int, updates: int, **env) -> dict:
     from aswarm.agents.config import TrainConfig
-    from aswarm.analysis import bench
+    from aswarm.analysis import train_bench
 
     cfg = TrainConfig(scenario=SCENARIO, num_envs=worlds, rollout_steps=rollout_steps,
                       minibatches=2 if worlds * rollout_steps % 2 == 0 else 1,
                       env_overrides=tuple(sorted({**BASE_ENV, **env}.items())))
-    r = bench.time_trainer(cfg, updates)
+    r = train_bench.time_trainer(cfg, updates)
     return {"train_steps_per_s": r["env_steps_per_s"], "train_compile_s": r["compile_s"]}
 
 

@@ -86,23 +86,32 @@ def test_trajectory_and_attention_figures(tmp_path, episode):
         plots.plot_trajectories(episode, tmp_path / "traj.jpg")
 
 
-def test_render_gives_a_video_or_a_clear_message(tmp_path, policy, episode):
+def test_render_gives_an_mp4_by_default_or_a_clear_message(tmp_path, policy, episode):
     try:
         path, fmt, backend = render.render_episode(episode, policy[0].env.config, tmp_path / "ep.mp4", fps=10,
                                                    width=96, height=72)
     except render.RenderUnavailable as e:
         assert len(str(e).splitlines()) == 1 and "MUJOCO_GL=egl" in str(e)
         return
-    assert backend in render.GL_BACKENDS and fmt in ("mp4", "gif", "png")
-    assert path.exists() and (path.is_dir() or path.stat().st_size > 1000)
-    if fmt == "gif":
-        from PIL import Image
+    # imageio-ffmpeg is a dependency: the default output is an mp4 (an ISO media file: its first box is 'ftyp').
+    assert backend in render.GL_BACKENDS and (path, fmt) == (tmp_path / "ep.mp4", "mp4")
+    assert path.read_bytes()[4:8] == b"ftyp" and sorted(p.name for p in tmp_path.iterdir()) == ["ep.mp4"]
+    import imageio_ffmpeg
 
-        with Image.open(path) as im:
-            # Pillow merges identical consecutive frames (the held ending), so at most this many.
-            stride = max(1, round(episode.policy_freq / 10))
-            held = int(episode.policy_freq / stride)  # the last frame, held for a second
-            assert im.size == (96, 72) and 2 <= im.n_frames <= len(range(0, len(episode.time), stride)) + held
+    frames, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    stride = max(1, round(episode.policy_freq / 10))
+    held = int(episode.policy_freq / stride)  # the last frame, held for a second
+    assert frames == len(range(0, len(episode.time), stride)) + held
+    assert cli.build_parser().parse_args(["render", "--checkpoint", "x"]).out.suffix == ".mp4"
+    # A .gif when asked for one (Pillow, which Matplotlib depends on).
+    path, fmt, _ = render.render_episode(episode, policy[0].env.config, tmp_path / "ep.gif", fps=10, width=96,
+                                         height=72, backends=(backend,))
+    from PIL import Image
+
+    assert fmt == "gif"
+    with Image.open(path) as im:
+        # Pillow merges identical consecutive frames (the held ending), so at most as many as the mp4.
+        assert im.size == (96, 72) and 2 <= im.n_frames <= frames
 
 
 def test_render_without_a_gl_backend_is_a_one_line_error(tmp_path, policy, episode):

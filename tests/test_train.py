@@ -373,3 +373,56 @@ def test_progress_shows_the_chunks_episodes_weighted_and_keeps_them_through_a_ch
     quiet = {k: np.zeros_like(v) for k, v in metrics.items()}
     again = chunk_episode_means(quiet, shown)
     np.testing.assert_allclose(again["episode/success"], shown["episode/success"])
+
+
+def test_the_trainers_rollout_and_learn_compose_to_its_update():
+    from aswarm.agents.train import make_trainer
+
+    t = make_trainer(TrainConfig(method="mappo", **SMALL))
+    ts = jax.jit(t.init)(jax.random.PRNGKey(0))
+    whole, m_whole = jax.jit(t.update_chunk, static_argnums=1)(ts, 1)
+    _, k_roll, k_perm = jax.random.split(ts.key, 3)
+    env_state, tr = jax.jit(t.rollout)(ts, k_roll)
+    chex.assert_shape(tr.reward, (SMALL["rollout_steps"], SMALL["num_envs"], 1))
+    halves, m_halves = jax.jit(t.learn)(ts, env_state, tr, k_perm)
+    assert int(halves.update) == int(whole.update) == 1
+    # Compiled apart, XLA may fuse the sums otherwise: the same numbers to float round-off.
+    for a, b in zip(jax.tree.leaves(halves.params), jax.tree.leaves(whole.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(float(m_halves["train/loss"]), float(m_whole["train/loss"][0]), rtol=1e-4)
+
+
+def test_loop_timing_and_the_time_a_curve_reached_its_target():
+    from aswarm.analysis.train_bench import first_time_at
+
+    # Chunks of 10 updates from update 20 (a resumed run): 30 s with the compile, then 8 s, 8 s, and a last,
+    # shorter chunk of 2 updates that compiles its own length (5 s): only the 8 s chunks are steady.
+    t = runner.loop_timing([(10, 30.0), (10, 8.0), (10, 8.0), (2, 5.0)], steps_per_update=100, start=20)
+    assert t["updates"] == 32 and t["env_steps"] == 3200 and t["loop_s"] == 51.0
+    assert t["first_chunk_s"] == 30.0 and t["first_chunk_updates"] == 10
+    assert t["env_steps_per_s"] == pytest.approx(3200 / 51) and t["steady_env_steps_per_s"] == pytest.approx(125.0)
+    assert t["chunk_ends"] == [[30, 30.0], [40, 38.0], [50, 46.0], [52, 51.0]]
+    assert runner.loop_timing([(10, 30.0)], 100)["steady_env_steps_per_s"] is None
+    # Success per update from update 28; update 32 ended no episode and does not count towards the window of 3.
+    succ = [0.0, 0.5, 1.0, 1.0, None, 0.9, 1.0, 1.0]
+    rows = [{"update": 28 + i, "episodes": 0.0 if s is None else 4.0, "episode/success": s or 0.0}
+            for i, s in enumerate(succ)]
+    # Windows of the updates that ended episodes: 0.5 at update 30 (its chunk ends at update 30: 30 s), 0.83 at
+    # 31 (chunk to 40: 38 s), 0.97 at 33, 34 and 35.
+    assert first_time_at(rows, t["chunk_ends"], 0.4, window=3) == 30.0
+    assert first_time_at(rows, t["chunk_ends"], 0.8, window=3) == 38.0
+    assert first_time_at(rows, t["chunk_ends"], 0.95, window=3) == 38.0
+    assert first_time_at(rows, t["chunk_ends"], 0.99, window=3) is None
+
+
+def test_a_run_writes_its_timing_and_the_command_prints_it(tmp_path, capsys):
+    from aswarm import cli
+
+    run = runner.train(TrainConfig(method="mappo", **SMALL), tmp_path / "r", progress=False)
+    t = json.loads((run / runner.TIMING).read_text())
+    assert t["updates"] == 4 and t["env_steps"] == 4 * 32 * 8 and t["first_chunk_updates"] == 2
+    assert t["chunk_ends"][-1][0] == 4 and 0 < t["first_chunk_s"] <= t["loop_s"] <= t["train_s"]
+    assert 0 <= t["host_s"] < t["loop_s"] and t["steady_env_steps_per_s"] > 0
+    cli._print_timing(run)
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("trained 1,024 env steps in 0 min") and "after the first chunk" in line, line

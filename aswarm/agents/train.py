@@ -9,6 +9,7 @@ between chunks. Both produce the same numbers for the same key.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -193,8 +194,30 @@ def make_optimizer(config: TrainConfig, h: dict | None = None) -> optax.Gradient
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class Trainer:
+    """The trainer's pure, jittable pieces (:func:`make_trainer`).
+
+    ``update`` is ``learn(rollout(...))``: the two halves are kept apart so a profile can time each
+    (``aswarm bench --profile``); ``update_chunk`` and ``train`` are what the host loop and tests run.
+    """
+
+    agent: Agent
+    init: Callable  # (key[, values]) -> TrainState
+    rollout: Callable  # (ts, key) -> (env_state, Transition [T, B, ...])
+    learn: Callable  # (ts, env_state, transitions, permutation key) -> (TrainState, metrics)
+    update_chunk: Callable  # (ts, n) -> (TrainState, metrics [n])
+    train: Callable  # (key[, values]) -> (TrainState, metrics [num_updates])
+
+
 def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_rows=None):
-    """Returns ``(agent, init, update_chunk, train)``; the functions are pure and jittable.
+    """``(agent, init, update_chunk, train)`` of :func:`make_trainer`."""
+    t = make_trainer(config, sweep_fields, shard_rows)
+    return t.agent, t.init, t.update_chunk, t.train
+
+
+def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_rows=None) -> Trainer:
+    """The trainer of ``config``; its functions are pure and jittable.
 
     ``init(key) -> TrainState``; ``update_chunk(state, n) -> (state, metrics [n])``;
     ``train(key)`` runs ``config.num_updates`` updates from ``init``.
@@ -296,11 +319,11 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
                    approx_kl=approx_kl, loss=total)
         return total, aux
 
-    def update(ts: TrainState, _):
-        key, k_roll, k_perm = jax.random.split(ts.key, 3)
+    def learn(ts: TrainState, env_state, tr: Transition, k_perm: jax.Array):
+        """The update after its rollout (which reached ``env_state``): GAE, the epochs of minibatch steps over
+        permutations drawn from ``k_perm``, the metrics. The state's key is left to the caller."""
         h = hparams.resolve(config, ts.hparams)
         optimizer = make_optimizer(config, h)
-        env_state, tr = rollout(ts, k_roll)
         critics = {**ts.params, **ts.target}  # the target critics, where there are any, bootstrap GAE
         v, vc = values(critics, ts.obs_norm, tr.obs)
         nv, nvc = values(critics, ts.obs_norm, tr.final_obs)
@@ -344,9 +367,15 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
         metrics["train/cost_excess"] = excess
         target = jax.tree.map(lambda t, p: config.target_tau * p + (1 - config.target_tau) * t, ts.target,
                               {k: params[k] for k in ts.target})
-        ts = ts.replace(params=params, opt_state=opt_state, obs_norm=obs_norm, env_state=env_state, key=key,
+        ts = ts.replace(params=params, opt_state=opt_state, obs_norm=obs_norm, env_state=env_state,
                         update=ts.update + 1, env_steps=ts.env_steps + config.steps_per_update, target=target)
         return ts, metrics
+
+    def update(ts: TrainState, _):
+        key, k_roll, k_perm = jax.random.split(ts.key, 3)
+        env_state, tr = rollout(ts, k_roll)
+        ts, metrics = learn(ts, env_state, tr, k_perm)
+        return ts.replace(key=key), metrics
 
     def update_chunk(ts: TrainState, num_updates: int):
         return jax.lax.scan(update, ts, None, length=num_updates)
@@ -354,4 +383,4 @@ def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_ro
     def train(key: jax.Array, values: dict | None = None):
         return update_chunk(init(key, values), config.num_updates)
 
-    return agent, init, update_chunk, train
+    return Trainer(agent, init, rollout, learn, update_chunk, train)

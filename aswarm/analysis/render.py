@@ -8,8 +8,9 @@ aswarm.analysis.render``, which imports numpy and mujoco only) started with ``MU
 
 The parent builds the full scene model (drones, cylinders and gates as mocap bodies, ``scene.py``) and
 hands the child the MJCF and, per frame, the drones' ``qpos``, the mocap poses and a camera. The child
-encodes with imageio-ffmpeg (mp4) when importable, else Pillow (GIF), else it writes PNG frames, and
-renames the result into place when complete.
+encodes an mp4 with imageio-ffmpeg (a dependency of aswarm, with its own ffmpeg binary: the default), or a GIF
+with Pillow when asked for one or when imageio-ffmpeg cannot be imported, else it writes PNG frames, and renames
+the result into place when complete.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ def _importable(name: str) -> bool:
 def choose_output(out: str | Path, have_ffmpeg: bool, have_pillow: bool) -> tuple[Path, str]:
     """(path, format) actually written for a requested ``out``: format is "mp4", "gif" or "png".
 
-    An mp4 needs imageio-ffmpeg; without it a GIF is written beside (same stem) with Pillow, and without
-    Pillow a folder ``<stem>_frames`` of PNG files. A requested ``.gif`` needs Pillow the same way.
+    An mp4 (the default) needs imageio-ffmpeg, which aswarm depends on; where it cannot be imported a GIF is
+    written beside (same stem) with Pillow, and without Pillow a folder ``<stem>_frames`` of PNG files. A
+    requested ``.gif`` needs Pillow the same way.
     """
     out = Path(out)
     suffix = out.suffix.lower()
@@ -154,8 +156,8 @@ def frame_spec(ep, env_config, *, fps: int, width: int, height: int, camera: str
                 fps=np.array(ep.policy_freq / stride), width=np.array(width), height=np.array(height))
 
 
-def render_episode(ep, env_config, out: str | Path, *, fps: int = 25, width: int = 640, height: int = 480,
-                   camera: str = "follow", backends: tuple[str, ...] | None = None,
+def render_episode(ep, env_config, out: str | Path = "episode.mp4", *, fps: int = 25, width: int = 640,
+                   height: int = 480, camera: str = "follow", backends: tuple[str, ...] | None = None,
                    timeout_s: float = 600.0) -> tuple[Path, str, str]:
     """Render ``ep`` to a video; returns (path written, format "mp4"/"gif"/"png", MUJOCO_GL backend).
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import make_train
-from aswarm.training import checkpoint, run_config, sharding
+from aswarm.training import checkpoint, run_config, sharding, wandb_log
 
 
 class TrainingDiverged(RuntimeError):
@@ -75,6 +75,28 @@ class LoopResult:
     start: int  # the update it started (or resumed) at
     update: int  # the update it stopped at
     diverged: tuple[bool, ...]  # per trial: loss or parameters became NaN/Inf
+    timing: dict  # wall seconds of this call's loop and its first chunk (the compile), env-steps/s (see run_loop)
+
+
+TIMING = "timing.json"  # a run folder's wall time and throughput, as `aswarm train` prints them at the end
+
+
+def loop_timing(chunks: list[tuple[int, float]], steps_per_update: int, start: int = 0) -> dict:
+    """Wall time and throughput of a loop's ``chunks`` ([(updates, seconds)], in order, from update ``start``).
+    The first chunk holds the compile, and a shorter last chunk compiles its own length: the steady throughput
+    is that of the chunks after the first of the first one's length (None where there are none).
+    ``chunk_ends``: [update, wall seconds since the loop started] at the end of each chunk (wall time stays out
+    of ``metrics.jsonl``, which the same seed and config reproduce byte for byte)."""
+    updates = sum(k for k, _ in chunks)
+    seconds = sum(t for _, t in chunks)
+    rest = [(k, t) for k, t in chunks[1:] if k == chunks[0][0]]
+    rest_k, rest_s = sum(k for k, _ in rest), sum(t for _, t in rest)
+    return {"updates": updates, "env_steps": updates * steps_per_update, "loop_s": seconds,
+            "first_chunk_updates": chunks[0][0] if chunks else 0, "first_chunk_s": chunks[0][1] if chunks else 0.0,
+            "env_steps_per_s": updates * steps_per_update / seconds if seconds > 0 else None,
+            "steady_env_steps_per_s": rest_k * steps_per_update / rest_s if rest_k and rest_s > 0 else None,
+            "chunk_ends": [[start + int(u), round(float(t), 3)] for u, t in
+                           zip(np.cumsum([k for k, _ in chunks]), np.cumsum([t for _, t in chunks]))]}
 
 
 EPISODE_SHOWN = ("episode/episode_return", "episode/success", "episode/collision")
@@ -123,7 +145,8 @@ def append_rows(path: Path, metrics: dict, trial: int, first: int, steps_per_upd
 def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: list[Path], *,
              progress: bool = True, max_updates: int | None = None, desc: str | None = None,
              tensorboard: bool = False, log: Callable[[str], None] | None = None,
-             label: str | None = None) -> LoopResult:
+             label: str | None = None, on_chunk: Callable[[int, dict], bool] | None = None,
+             wandb: wandb_log.WandbOptions | None = None) -> LoopResult:
     """Train ``program`` from its newest checkpoint in ``ckpt_dir`` (or from init) to ``config.num_updates``.
 
     One metrics log per trial (``trial_dirs[i]/metrics.jsonl``, truncated atomically to the restored update),
@@ -132,7 +155,10 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
     and the others train on; when every trial has, the loop stops with :class:`TrainingDiverged` before
     logging or saving that chunk, so the last good checkpoint is kept. ``max_updates`` stops after that many
     updates in this call (tests, interrupted-run checks). Only process 0 writes logs. ``log`` gets the lines
-    prefixed with ``label`` (resumed, diverged) and the checkpoint fallback's (default: stderr).
+    prefixed with ``label`` (resumed, diverged) and the checkpoint fallback's (default: stderr). ``wandb`` also
+    sends the rows TensorBoard gets (trial 0's) to Weights & Biases.
+    ``on_chunk(update, metrics)`` is called after each chunk's rows are logged; when it returns True the loop
+    saves a checkpoint there and stops early (a search that has pruned every trial of the program).
     """
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
@@ -159,17 +185,22 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
     diverged = [not ok for ok in good]
     total = config.num_updates
     stop = total if max_updates is None else min(total, start + max_updates)
+    wandb_run = wandb_log.start(wandb, config, trial_dirs[0], resumed=start > 0) if wandb and primary else None
     writer = SummaryWriter(str(trial_dirs[0] / "tb")) if tensorboard and primary else None
+    finished = False
     bar = tqdm(total=total, initial=start, unit="upd", disable=not (progress and primary), dynamic_ncols=True,
                desc=desc)
     last_save, update = time.monotonic(), start
     shown = None
+    chunks: list[tuple[int, float]] = []  # (updates, wall seconds) per chunk
+    host_s = 0.0  # the loop's own time between chunks (logs, checks, checkpoints), the devices idle
     try:
         t_prev = time.monotonic()
         while update < stop:
             k = min(config.updates_per_chunk, stop - update)
             new_ts, metrics = program.chunk_fn(ts, k)  # donates ts
             metrics = sharding.fetch(metrics)
+            t_ready = time.monotonic()  # the chunk has run: what follows until the next chunk is the host's
             if not program.stacked:
                 metrics = {name: np.asarray(v)[None] for name, v in metrics.items()}  # [1, k]: one trial
             params = sharding.fetch(new_ts.params)
@@ -192,15 +223,20 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
             ts = new_ts
             now = time.monotonic()
             sps = k * config.steps_per_update / (now - t_prev)
+            chunks.append((k, now - t_prev))
             t_prev = now
             if primary:
                 for i, d in enumerate(trial_dirs):
                     rows = append_rows(d / "metrics.jsonl", metrics, i, update, config.steps_per_update)
-                    for row in rows if writer is not None and i == 0 else ():
-                        for name, v in row.items():
+                    for row in rows if i == 0 else ():
+                        for name, v in row.items() if writer is not None else ():
                             if name != "update":
                                 writer.add_scalar(name, v, row["update"])
+                        if wandb_run is not None:
+                            wandb_run.log(row)
             update += k
+            if on_chunk is not None and on_chunk(update, metrics):
+                stop = update
             shown = chunk_episode_means(metrics, shown)
             if len(trial_dirs) == 1:
                 bar.set_postfix(sps=f"{sps:,.0f}", ret=f"{shown['episode/episode_return'][0]:.1f}",
@@ -212,11 +248,16 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
             if update >= stop or now - last_save > 60 * config.checkpoint_minutes:
                 checkpoint.save(mngr, update, sharding.for_checkpoint(sharding.fetch(ts)))
                 last_save = now
+            host_s += time.monotonic() - t_ready
+        finished = True
     finally:
         bar.close()
         if writer is not None:
             writer.close()
-    return LoopResult(ts, start, update, tuple(diverged))
+        if wandb_run is not None:
+            wandb_run.close(ok=finished)
+    return LoopResult(ts, start, update, tuple(diverged),
+                      {**loop_timing(chunks, config.steps_per_update, start), "host_s": host_s})
 
 
 # --- a single run ----------------------------------------------------------------------------------------------
@@ -236,14 +277,17 @@ def resume_config(stored: TrainConfig, changes: dict | None) -> TrainConfig:
 
 
 def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
-          max_updates: int | None = None, changes: dict | None = None) -> Path:
+          max_updates: int | None = None, changes: dict | None = None,
+          wandb: wandb_log.WandbOptions | None = None) -> Path:
     """Train (or resume) into ``run_dir``; returns the run folder.
 
     A run is a sweep of one trial: the same host loop (:func:`run_loop`) on an unstacked state. With
     ``resume`` the config is the run's own (``config.json``, env as stored), with ``changes`` (flags given
     again) applied where :data:`RESUMABLE` allows. ``max_updates`` stops early after that many updates in this
-    call (for tests and interrupted-run checks); the budget stays ``config.num_updates``.
+    call (for tests and interrupted-run checks); the budget stays ``config.num_updates``. ``wandb`` logs the run
+    to Weights & Biases as well (``wandb_log``).
     """
+    t_begin = time.monotonic()
     run_dir = Path(run_dir) if run_dir else default_run_dir(config)
     if resume:
         stored = checkpoint.load_config(run_dir)
@@ -268,8 +312,15 @@ def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool 
     key = jax.random.PRNGKey(config.seed)
     init_fn, chunk_fn = sharding.sharded_fns(init, update_chunk, jax.eval_shape(init, key), mesh, stacked=False)
     program = Program(agent.env, init_fn, chunk_fn, (key,), mesh, stacked=False)
-    run_loop(program, config, run_dir, [run_dir], progress=progress, max_updates=max_updates, tensorboard=True)
+    result = run_loop(program, config, run_dir, [run_dir], progress=progress, max_updates=max_updates,
+                      tensorboard=True, wandb=wandb)
     plot_curves(run_dir)
+    timing = {**result.timing, "devices": config.devices, "resumed_at": result.start,
+              "train_s": time.monotonic() - t_begin}
+    if jax.process_index() == 0:
+        tmp = run_dir / (TIMING + ".tmp")
+        tmp.write_text(json.dumps(timing, indent=1) + "\n")
+        tmp.replace(run_dir / TIMING)
     return run_dir
 
 

@@ -1,9 +1,10 @@
 """Hyperparameter sweeps: every configuration x seed of a sweep file trained inside one ``jit``.
 
 A sweep file (TOML) names the scenario, the budget, the seeds and a ``[grid]`` or ``[random]``
-search. Configurations that differ only in value-only hyperparameters (``hparams.VALUE_FIELDS``:
-learning rates, clip, GAE lambda, gamma, loss coefficients, cost limit, CBF gain and penalty bounds)
-share one compiled program, vmapped over configurations and seeds. Any other field (network sizes,
+search, or an ``[optuna]`` search (``optuna_search.py``: rounds of configurations drawn by Optuna, each round
+trained as one vmapped program). Configurations that differ only in value-only hyperparameters
+(``hparams.VALUE_FIELDS``: learning rates, clip, GAE lambda, gamma, loss coefficients, cost limit, CBF gain and
+penalty bounds) share one compiled program, vmapped over configurations and seeds. Any other field (network sizes,
 number of worlds, method, ``env.*`` fields such as reward weights, which the environment bakes into
 its code) starts a new group with its own compile.
 
@@ -22,9 +23,9 @@ import json
 import math
 import time
 import tomllib
-import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
@@ -34,8 +35,11 @@ from aswarm.agents import hparams
 from aswarm.agents.config import TrainConfig
 from aswarm.core import safety
 
+if TYPE_CHECKING:
+    from aswarm.training.optuna_search import OptunaSearch
+
 TOP_KEYS = ("name", "scenario", "method", "total_steps", "seeds", "last_updates", "sample_seed", "max_trials",
-            "fixed", "grid", "random")
+            "fixed", "grid", "random", "optuna")
 # More trials than this is more likely a typo in a grid than a plan: the file must say max_trials = N (or --yes).
 MAX_TRIALS = 256
 # Set once for the whole sweep, at the top level of the file.
@@ -68,6 +72,8 @@ class SweepSpec:
     seeds: tuple[int, ...]
     last_updates: int  # final metrics: episode-weighted mean over this many last updates
     source: str  # the file's text, to recognise the sweep on resume
+    # An [optuna] search: its configurations are drawn while it trains, so ``configs`` is empty at parse time.
+    optuna: OptunaSearch | None = None
 
     @property
     def trials(self) -> tuple[Trial, ...]:
@@ -88,30 +94,8 @@ def _types() -> tuple[dict, dict]:
     return {**config_args.field_types(TrainConfig), **legacy}, env
 
 
-def _coerce(where: str, kind, value):
-    """``value`` as a field of type ``kind``; a one-line ValueError naming it and what is allowed."""
-    def fail(allowed: str):
-        raise ValueError(f"{where}: invalid value {value!r} ({type(value).__name__}); allowed: {allowed}")
-
-    if kind is bool:
-        return value if isinstance(value, bool) else fail("true or false")
-    if kind is int:
-        return value if isinstance(value, int) and not isinstance(value, bool) else fail("an integer")
-    if kind is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        fail("a finite number")
-    if kind is str:
-        return value if isinstance(value, str) else fail("a string")
-    if typing.get_origin(kind) is tuple:
-        if not isinstance(value, list):
-            fail("a list")
-        inner = typing.get_args(kind)
-        inner = inner[0] if inner[-1] is Ellipsis else None
-        if inner is None:
-            fail("nothing: this field is not sweepable")
-        return tuple(_coerce(where, inner, v) for v in value)
-    fail("nothing: this field is not sweepable")
+# A TOML value as a field of its type: one home, shared with `aswarm train --config` (config_args.coerce).
+_coerce = config_args.coerce
 
 
 def _field(where: str, key: str, train_types: dict, env_types: dict):
@@ -137,17 +121,7 @@ def _flatten_env(table: dict) -> dict:
     env = table.get("env", {})
     if not isinstance(env, dict):
         raise ValueError(f"invalid env = {env!r}: allowed: a table of env fields (env.FIELD = ...)")
-    leaves = _types()[1]
-
-    def walk(prefix: str, sub: dict) -> None:
-        for k, v in sub.items():
-            name = prefix + k
-            if isinstance(v, dict) and name not in leaves:
-                walk(name + ".", v)
-            else:
-                out[f"env.{name}"] = v
-
-    walk("", env)
+    out.update({f"env.{k}": v for k, v in config_args.flatten(env, _types()[1]).items()})
     return out
 
 
@@ -257,11 +231,13 @@ def parse(data: dict, name: str = "sweep", source: str = "", yes: bool = False) 
     for key, value in _table(data, "fixed", name).items():
         where = f"sweep {name}: [fixed] {key}"
         fixed[key] = _coerce(where, _field(where, key, *types)[2], value)
-    has_grid, has_random = "grid" in data, "random" in data
-    if has_grid == has_random:
-        raise ValueError(f"sweep {name}: needs exactly one of [grid] or [random]; found "
-                         f"{'both' if has_grid else 'neither'}")
-    if has_grid:
+    searches = [k for k in ("grid", "random", "optuna") if k in data]
+    if len(searches) != 1:
+        raise ValueError(f"sweep {name}: needs exactly one of [grid], [random] or [optuna]; found "
+                         f"{' and '.join(f'[{k}]' for k in searches) or 'none'}")
+    if searches == ["optuna"]:
+        return _parse_optuna(data, name, source, yes, top, fixed, tuple(seeds), last_updates, max_trials, types)
+    if searches == ["grid"]:
         points = _grid_points(name, _table(data, "grid", name), types)
     else:
         points = _random_points(name, _table(data, "random", name), sample_seed, types)
@@ -289,6 +265,34 @@ def parse(data: dict, name: str = "sweep", source: str = "", yes: bool = False) 
         labels.append(label)
     return SweepSpec(name=name, configs=tuple(configs), labels=tuple(labels), points=tuple(points),
                      seeds=tuple(seeds), last_updates=last_updates, source=source)
+
+
+def _parse_optuna(data: dict, name: str, source: str, yes: bool, top: dict, fixed: dict, seeds: tuple[int, ...],
+                  last_updates: int, max_trials: int, types: tuple[dict, dict]) -> SweepSpec:
+    """The [optuna] search of a sweep file: its base configuration (top level and [fixed]) and its table."""
+    from aswarm import envs
+    from aswarm.training import optuna_search  # imports optuna itself only now: a file with [optuna] needs it
+
+    if "sample_seed" in data:
+        raise ValueError(f"sweep {name}: sample_seed is for [random]; allowed with [optuna]: seed = N in [optuna]")
+    train = {k: v for k, v in {**top, **fixed}.items() if not k.startswith("env.")}
+    env_over = tuple(sorted((k[4:], v) for k, v in fixed.items() if k.startswith("env.")))
+    try:
+        base = TrainConfig(**safety.nest_legacy(train), env_overrides=env_over)
+        envs.SwarmEnv(base.env)  # builds the model only: no compile
+    except ValueError as e:
+        raise ValueError(f"sweep {name}: configuration [fixed]: {e}") from None
+    table = data["optuna"]
+    if not isinstance(table, dict):
+        raise ValueError(f"sweep {name}: invalid optuna = {table!r}; allowed: a table [optuna]")
+    search = optuna_search.parse_table(name, table, base, fixed, types)
+    trials = search.rounds * search.batch * len(seeds)
+    if trials > max_trials and not yes:
+        raise ValueError(f"sweep {name}: {trials} trials ({search.rounds} rounds x {search.batch} configurations x "
+                         f"{len(seeds)} seeds) is more than max_trials = {max_trials}; allowed: set max_trials "
+                         f"in the file, or pass --yes")
+    return SweepSpec(name=name, configs=(), labels=(), points=(), seeds=seeds, last_updates=last_updates,
+                     source=source, optuna=search)
 
 
 def load(path: str | Path, yes: bool = False) -> SweepSpec:
@@ -320,9 +324,26 @@ def groups(spec: SweepSpec) -> tuple[Group, ...]:
 def _programs(group: Group, mesh=None):
     """(agent, jitted init, jitted chunk, keys, values, mesh) of a group, laid out over ``mesh`` (default: all
     devices)."""
+    agent, init_fn, chunk_fn, mesh = build_program(group, mesh)
+    return (agent, init_fn, chunk_fn, *group_args(group, mesh), mesh)
+
+
+def group_args(group: Group, mesh) -> tuple:
+    """(keys, values): the init arguments of ``group``'s trials, laid out over ``mesh``. Any group with the same
+    shapes and ``sweep_fields`` runs in the program :func:`build_program` made for one of them."""
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
+    from aswarm.training import sharding
+
+    keys = np.stack([np.asarray(jax.random.PRNGKey(t.config.seed)) for t in group.trials])
+    values = hparams.stack([t.config for t in group.trials], group.sweep_fields)
+    lead = NamedSharding(mesh, P("trial"))
+    return sharding.put(keys, lead), sharding.put(values, lead)
+
+
+def build_program(group: Group, mesh=None) -> tuple:
+    """(agent, jitted init, jitted chunk, mesh) of a group, laid out over ``mesh`` (default: all devices)."""
     from aswarm.agents.train import make_train
     from aswarm.training import sharding
 
@@ -343,15 +364,14 @@ def _programs(group: Group, mesh=None):
     values = hparams.stack([t.config for t in group.trials], group.sweep_fields)
     like = jax.eval_shape(vinit, keys, values)
     init_fn, chunk_fn = sharding.sharded_fns(vinit, vchunk, like, mesh, stacked=True)
-    lead = NamedSharding(mesh, P("trial"))
-    return agent, init_fn, chunk_fn, sharding.put(keys, lead), sharding.put(values, lead), mesh
+    return agent, init_fn, chunk_fn, mesh
 
 
 def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
                log: Callable[[str], None]) -> dict:
     """Train one group to its budget (or ``max_updates`` more) with the runner's host loop (a run is a group
     of one trial); returns its timing and whether it finished."""
-    from aswarm.training import checkpoint, runner, sharding
+    from aswarm.training import runner, sharding
 
     gdir = out / "groups" / f"g{group.index}"
     done_file = gdir / "done.json"
@@ -389,19 +409,26 @@ def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None,
               "devices": int(mesh.devices.size)}
     if update < total:
         return result
-    final = sharding.fetch(res.state)
+    save_trials(group, update, res.state, agent.env, tdirs)
+    if primary:
+        done_file.write_text(json.dumps(result))
+    return result
+
+
+def save_trials(group: Group, update: int, state, env, tdirs: list[Path]) -> None:
+    """Each trial's slice of the stacked ``state`` as a plain run's checkpoint in its folder, and its curves."""
+    from aswarm.training import checkpoint, runner, sharding
+
+    final = sharding.fetch(state)
     for i, (t, d) in enumerate(zip(group.trials, tdirs)):
         # The trial's own config holds its values: saved without hparams, the checkpoint is a plain run's,
         # so `aswarm eval`, `aswarm export` and `aswarm train --resume` read it.
         trial_state = sharding.for_checkpoint(hparams.index(final, i).replace(hparams={}))
-        trial_mngr = checkpoint.manager(d, fingerprint=checkpoint.fingerprint(t.config, agent.env))
-        if trial_mngr.latest_step() != update:  # not saved already by a run killed before done.json
+        trial_mngr = checkpoint.manager(d, fingerprint=checkpoint.fingerprint(t.config, env))
+        if trial_mngr.latest_step() != update:  # not saved already by a run killed before its results were kept
             checkpoint.save(trial_mngr, update, trial_state)
-        if primary:
+        if jax.process_index() == 0:
             runner.plot_curves(d)
-    if primary:
-        done_file.write_text(json.dumps(result))
-    return result
 
 
 def _check_plan(spec: SweepSpec, out: Path) -> None:
@@ -424,6 +451,10 @@ def run(spec: SweepSpec, out: str | Path, progress: bool = True, max_updates: in
     ``max_updates`` (updates per group in this call, for tests) stopped it early."""
     from aswarm.training import sharding
 
+    if spec.optuna is not None:
+        from aswarm.training import optuna_search
+
+        return optuna_search.run(spec, out, progress=progress, max_updates=max_updates, mesh=mesh, log=log)
     out = Path(out)
     if jax.process_index() != 0:  # several hosts: one of them reports
         log = lambda _: None  # noqa: E731
@@ -503,6 +534,10 @@ def format_table(results: dict) -> str:
     lines = []
     for e in results["configs"]:
         note = f" ({len(e['diverged'])} diverged)" if e["diverged"] else ""
+        if e.get("pruned_at") is not None:  # an [optuna] search's
+            note += f" (pruned at update {e['pruned_at']})"
+        elif e.get("state") == "FAIL":
+            note += " (failed)"
         lines.append(f"| {e['rank']} | {e['label']} | {cell(e['success'])} | {cell(e['collision'])} | "
                      f"{cell(e['episode_return'])} | c{e['config']:02d}-s*{note} |")
     return head + "\n".join(lines)
@@ -590,6 +625,9 @@ def bench_sweep(spec: SweepSpec, seed: int | None = None, log: Callable[[str], N
     from aswarm.agents.train import make_train
     from aswarm.training import sharding
 
+    if spec.optuna is not None:
+        raise ValueError(f"invalid --bench for sweep {spec.name}: its [optuna] configurations are drawn as it "
+                         "trains; allowed: a [grid] or [random] sweep")
     seed = spec.seeds[0] if seed is None else seed
     group = groups(dataclasses.replace(spec, seeds=(seed,)))[0]
     base = group.trials[0].config
