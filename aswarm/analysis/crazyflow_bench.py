@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=200, help="control steps to time")
     parser.add_argument("--mode", choices=("scan", "nsteps", "loop"), default="scan")
     parser.add_argument("--device", default=None, help="jax platform for crazyflow (default: jax default backend)")
+    parser.add_argument("--contacts", action="store_true",
+                        help="scan mode: crazyflow's own collision check (its mjx sync and mjx.collision, as "
+                             "Sim.contacts runs them) after every control step, any contact counted")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1:
         parser.error("--worlds and --steps must be positive")
@@ -87,24 +90,34 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.mode == "scan":
         step_fn = sim.build_step_fn()  # pure (data, n_steps) -> data, jitted, lax.scan over physics steps
+        if args.contacts:
+            from crazyflow.sim.sim import sync_sim2mjx
 
-        def control_step(data: Any, t: Any) -> tuple[Any, None]:
+        def control_step(carry: Any, t: Any) -> tuple[Any, None]:
+            data, mjx_data, hits = carry
             data = F.state_control(data, _setpoints(jnp, base_pos, t * (1.0 / ctrl_freq)))
-            return step_fn(data, n_steps=substeps), None
+            data = step_fn(data, n_steps=substeps)
+            if args.contacts:
+                data, mjx_data = sync_sim2mjx(data, mjx_data, sim.mjx_model)
+                hits = hits + jnp.sum(mjx_data._impl.contact.dist < 0)
+            return (data, mjx_data, hits), None
 
         @jax.jit
-        def rollout(data: Any) -> Any:
-            return jax.lax.scan(control_step, data, jnp.arange(steps, dtype=jnp.float32))[0]
+        def rollout(data: Any, mjx_data: Any) -> Any:
+            carry = (data, mjx_data, jnp.zeros((), jnp.int32))
+            return jax.lax.scan(control_step, carry, jnp.arange(steps, dtype=jnp.float32))[0]
 
         t0 = time.perf_counter()
-        compiled = rollout.lower(sim.data).compile()
-        warm = jax.block_until_ready(compiled(sim.data))
+        compiled = rollout.lower(sim.data, sim.mjx_data).compile()
+        warm = jax.block_until_ready(compiled(sim.data, sim.mjx_data))
         compile_s = time.perf_counter() - t0
         del warm
         t0 = time.perf_counter()  # sim.data is untouched (no donation), so this restarts from the initial state
-        final = jax.block_until_ready(compiled(sim.data))
+        final, _, hits = jax.block_until_ready(compiled(sim.data, sim.mjx_data))
         run_s = time.perf_counter() - t0
         how = "functional.state_control + Sim.build_step_fn() in one jitted lax.scan over control steps"
+        if args.contacts:
+            how += f", crazyflow's collision check after each ({int(hits)} contacts)"
     elif args.mode == "nsteps":
         sim.state_control(_setpoints(jnp, base_pos, jnp.float32(0.0)))
         t0 = time.perf_counter()
@@ -157,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "sim_freq": sim_freq,
         "ctrl_freq": ctrl_freq,
         "crazyflow_version": str(getattr(crazyflow, "__version__", "unknown")),
+        "contacts": bool(args.contacts),
         "note": note,
     }
     print(json.dumps(result))
