@@ -197,11 +197,12 @@ def check_output(out: str | Path) -> Path:
     return out
 
 
-def _save(fig, out: Path) -> Path:
+def save_figure(fig, out: Path, dpi: float | None = None) -> Path:
+    """Write ``fig`` to ``out`` (at ``dpi``, else the figure's) atomically."""
     out.parent.mkdir(parents=True, exist_ok=True)
     # Written beside the target and renamed, so a reader never sees half a figure.
     tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp{out.suffix}")
-    fig.savefig(tmp, dpi=fig.dpi)
+    fig.savefig(tmp, dpi=dpi or fig.dpi)
     os.replace(tmp, out)
     return out
 
@@ -331,7 +332,7 @@ def plot_trajectories(ep: Episode, out: str | Path, *, three_d: bool = True, dpi
     outcome = "success" if m.get("success", 0) > 0.5 else ("collision" if m.get("collision", 0) > 0.5 else "time out")
     fig.suptitle(title or f"{ep.method} on {ep.scenario}: {outcome}, {ep.time[-1]:.1f} s, "
                           f"progress {m.get('progress', 0.0):.2f}")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _draw_3d_scene(ax, ep: Episode, is_track: bool) -> None:
@@ -400,4 +401,4 @@ def plot_attention(ep: Episode, out: str | Path, *, drone: int = 0, dpi: int = 1
     ax_d.set_ylabel(f"clearance (m, capped at {CLEARANCE_CAP:g})")
     ax_d.set_xlabel("time (s)")
     fig.suptitle(f"{ep.method} on {ep.scenario}: attention of drone {drone}")
-    return _save(fig, out)
+    return save_figure(fig, out)

@@ -650,7 +650,8 @@ def plot_search(results: dict, out: Path) -> Path:
         a.grid(alpha=0.3)
     fig.suptitle(f"sweep {results['name']}: [optuna] search")
     fig.tight_layout()
-    path = out / "optuna.png"
-    fig.savefig(path, dpi=100)
+    from aswarm.analysis.plots import save_figure
+
+    path = save_figure(fig, out / "optuna.png", dpi=100)
     plt.close(fig)
     return path

@@ -371,9 +371,8 @@ def plot_curves(run_dir: Path) -> Path | None:
         ax.grid(alpha=0.3)
     fig.suptitle(f"{Path(run_dir).name}")
     fig.tight_layout()
-    out = Path(run_dir) / "curves.png"
-    tmp = out.with_name("curves.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from aswarm.analysis.plots import save_figure
+
+    out = save_figure(fig, Path(run_dir) / "curves.png", dpi=110)
     plt.close(fig)
-    tmp.replace(out)
     return out

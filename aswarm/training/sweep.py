@@ -590,8 +590,9 @@ def plot_curves(results: dict, out: Path) -> Path:
     axes[0].legend(fontsize=7)
     fig.suptitle(f"sweep {results['name']}")
     fig.tight_layout()
-    path = out / "curves.png"
-    fig.savefig(path, dpi=100)
+    from aswarm.analysis.plots import save_figure
+
+    path = save_figure(fig, out / "curves.png", dpi=100)
     plt.close(fig)
     return path
 
