@@ -55,26 +55,33 @@ def _env_rollout(env: envs.SwarmEnv, config) -> Callable:
     return jax.jit(run)
 
 
-def profile(config, repeat: int = 3) -> dict:
-    """Seconds per update of each stage (see the module's docstring) and of the whole update, on the devices
-    ``aswarm train`` would use; ``{"stages": {name: s}, "update_s": s, "devices": d}``."""
+def _program(config, key: jax.Array):
+    """(trainer, state, jitted chunk, mesh): the trainer laid out over the devices as ``aswarm train`` lays it."""
     from aswarm.agents.train import make_trainer
     from aswarm.training import sharding
 
     mesh = sharding.training_mesh(config.num_envs, config.devices)
-    rows = sharding.rows_constraint(mesh)
-    trainer = make_trainer(config, shard_rows=rows)
-    key = jax.random.PRNGKey(config.seed)
+    trainer = make_trainer(config, shard_rows=sharding.rows_constraint(mesh))
     init_fn, chunk_fn = sharding.sharded_fns(trainer.init, trainer.update_chunk,
                                              jax.eval_shape(trainer.init, key), mesh, stacked=False)
-    ts = init_fn(key)
+    return trainer, init_fn(key), chunk_fn, mesh
+
+
+def profile(config, repeat: int = 3) -> dict:
+    """Seconds per update of each stage (see the module's docstring), on the devices ``aswarm train`` would
+    use; ``{"stages": {name: s}, "devices": d}``."""
+    from aswarm.agents.train import make_trainer
+    from aswarm.training import sharding
+
+    trainer, ts, _, mesh = _program(config, jax.random.PRNGKey(config.seed))
     k = jax.random.PRNGKey(1)
     env_s = _median_time(_env_rollout(trainer.agent.env, config), ts.env_state, k, repeat=repeat)
     stages = {"environment (random commands)": env_s}
     rollout = jax.jit(trainer.rollout)
     if config.uses_filter:
         # The same networks without the filter: the policy's share, then the filter's on top.
-        bare = make_trainer(dataclasses.replace(config, method="attention_penalty"), shard_rows=rows)
+        bare = make_trainer(dataclasses.replace(config, method="attention_penalty"),
+                            shard_rows=sharding.rows_constraint(mesh))
         policy_s = _median_time(jax.jit(bare.rollout), ts, k, repeat=repeat)
         stages["policy"] = policy_s - env_s
         stages["safety filter"] = _median_time(rollout, ts, k, repeat=repeat) - policy_s
@@ -83,15 +90,7 @@ def profile(config, repeat: int = 3) -> dict:
     env_state, tr = rollout(ts, k)
     stages["learner (GAE, epochs x minibatches, metrics)"] = _median_time(jax.jit(trainer.learn), ts, env_state, tr,
                                                                           k, repeat=repeat)
-    updates = max(1, config.updates_per_chunk)
-    ts, _ = chunk_fn(ts, updates)  # compiles (and donates the state it was given)
-    t0 = time.perf_counter()
-    for _ in range(repeat):
-        ts, _ = chunk_fn(ts, updates)
-    jax.block_until_ready(ts)
-    update_s = (time.perf_counter() - t0) / (repeat * updates)
-    return {"stages": stages, "update_s": update_s, "devices": int(mesh.devices.size),
-            "steps_per_update": config.steps_per_update}
+    return {"stages": stages, "devices": int(mesh.devices.size)}
 
 
 def first_time_at(rows: list[dict], chunk_ends: list, target: float, window: int = 5,
@@ -130,13 +129,14 @@ def _minutes(s: float | None) -> str:
     return "never" if s is None else f"{int(s // 60)} min {s % 60:.0f} s"
 
 
-def format_profile(p: dict) -> list[str]:
+def format_profile(p: dict, whole: dict) -> list[str]:
+    """The profile's table; ``whole``: :func:`time_trainer` of the same config (the whole update's row)."""
     total = sum(p["stages"].values())
     lines = ["| stage | s / update | share of the stages |", "|---|---:|---:|"]
     lines += [f"| {name} | {s:.3f} | {s / total:.0%} |" for name, s in p["stages"].items()]
     lines += [f"| sum of the stages | {total:.3f} | 100% |",
-              f"| the whole update (one jitted chunk, as the host loop runs it) | {p['update_s']:.3f} | "
-              f"{p['steps_per_update'] / p['update_s']:,.0f} env-steps/s |"]
+              f"| the whole update (one jitted chunk, as the host loop runs it) | {whole['s_per_update']:.3f} | "
+              f"{whole['env_steps_per_s']:,.0f} env-steps/s |"]
     return lines
 
 
@@ -157,14 +157,7 @@ def format_end_to_end(r: dict) -> list[str]:
 def time_trainer(config, updates: int = 3) -> dict:
     """Throughput of the whole update alone (rollout and learner, no host loop), compile apart, laid out as
     ``aswarm train`` does (its worlds over ``config.devices``, 0: every device that divides them)."""
-    from aswarm.agents.train import make_train
-    from aswarm.training import sharding
-
-    mesh = sharding.training_mesh(config.num_envs, config.devices)
-    _, init, chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))
-    key = jax.random.PRNGKey(0)
-    init_fn, fn = sharding.sharded_fns(init, chunk, jax.eval_shape(init, key), mesh, stacked=False)
-    ts = init_fn(key)
+    _, ts, fn, mesh = _program(config, jax.random.PRNGKey(0))
     t0 = time.perf_counter()
     ts, _ = fn(ts, updates)  # compiles; a second call would recompile if the state's types drifted
     jax.block_until_ready(ts)
@@ -177,7 +170,7 @@ def time_trainer(config, updates: int = 3) -> dict:
             "s_per_update": run_s / updates, "devices": int(mesh.devices.size)}
 
 
-# The whole-update table's rows: (method, what differs, TrainConfig overrides).
+# The whole-update table's rows: (method, what differs, TrainConfig overrides); the first is the defaults.
 VARIANTS = (
     ("attention_cbf", "default sizes", {}),
     ("attention_cbf", "default sizes", {"devices": 1}),  # the peer of the row above: one device
@@ -207,19 +200,22 @@ def main(args) -> int:
                   f"{r['devices']} device(s)), timed as the user runs it, into `{out}`:", ""]
         lines += format_end_to_end(r) + [""]
         (out / "bench.json").write_text(json.dumps(r, indent=1))
+    table, timed = [], []
+    for method, label, over in VARIANTS:
+        r = time_trainer(dataclasses.replace(config, method=method, **over))
+        timed.append(r)
+        print(f"  {method:18s} {label:38s} {r['devices']} device(s) {r['env_steps_per_s']:10,.0f} env-steps/s",
+              flush=True)
+        table.append(f"| {method} | {label} | {r['devices']} | {r['env_steps_per_s']:,.0f} | {r['s_per_update']:.2f} "
+                     f"| {r['compile_s']:.0f} |")
     p = profile(config)
     lines += [f"Where one update's time goes ({config.num_envs} worlds x {config.rollout_steps} steps, "
               f"{config.epochs} epochs x {config.minibatches} minibatches, {p['devices']} device(s); each stage "
               "jitted and timed on its own):", ""]
-    lines += format_profile(p) + ["", "The whole update of each method, no host loop, compile apart:", "",
-                                  "| method | networks | devices | env-steps/s | s / update | compile s |",
-                                  "|---|---|---:|---:|---:|---:|"]
-    for method, label, over in VARIANTS:
-        r = time_trainer(dataclasses.replace(config, method=method, **over))
-        print(f"  {method:18s} {label:38s} {r['devices']} device(s) {r['env_steps_per_s']:10,.0f} env-steps/s",
-              flush=True)
-        lines.append(f"| {method} | {label} | {r['devices']} | {r['env_steps_per_s']:,.0f} | {r['s_per_update']:.2f} "
-                     f"| {r['compile_s']:.0f} |")
+    # The table's first row is the profiled config itself (the defaults): its whole update closes the profile.
+    lines += format_profile(p, timed[0]) + ["", "The whole update of each method, no host loop, compile apart:", "",
+                                         "| method | networks | devices | env-steps/s | s / update | compile s |",
+                                         "|---|---|---:|---:|---:|---:|"] + table
     write_section(args.out, "\n".join(lines), START, END)
     print(f"wrote {args.out}")
     return 0
