@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.files import write_atomic
 
 SCENARIOS = ("obstacles", "race")
 LEARNED = ("attention_cbf", "mappo", "a2c", "fixed_cbf", "attention_penalty", "mappo_lagrangian")
@@ -182,9 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "paper_table_quick" if args.quick else "paper_table"
     for suffix, content in ((".md", md), (".csv", text), (".json", json.dumps(results, indent=1, default=str))):
-        tmp = args.out / f"{stem}{suffix}.tmp"
-        tmp.write_text(content)
-        tmp.replace(args.out / f"{stem}{suffix}")
+        write_atomic(args.out / f"{stem}{suffix}", content)
     print(md)
     if args.quick:  # the pipeline check: every cell was filled
         expected = {(m, s) for m in args.methods for s in args.scenarios}

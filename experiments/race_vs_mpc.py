@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from aswarm.files import write_atomic
 
 MATRIX_SEED = 50_000  # unseen by the shipped race policy's selection (seeds 10000 and 20000)
 Z95 = 1.959963984540054
@@ -127,9 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     stem = "race_vs_mpc_quick" if args.quick else "race_vs_mpc"
     for suffix, text in ((".json", json.dumps({"command": command.strip(), **res}, indent=1) + "\n"),
                          (".md", report(res, command.strip()))):
-        tmp = args.out / f".{stem}{suffix}.tmp{os.getpid()}"
-        tmp.write_text(text)
-        tmp.replace(args.out / f"{stem}{suffix}")
+        write_atomic(args.out / f"{stem}{suffix}", text)
     print(report(res, command.strip()))
     return 0
 

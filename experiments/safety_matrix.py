@@ -32,17 +32,22 @@ import argparse
 import dataclasses
 import functools
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 from aswarm.envs.config import EnvConfig
+from aswarm.files import write_atomic
 
 # Episodes of the full run: the headline cells get enough for a 95 % interval of about +-0.2 points around a 99 %
 # rate, the others about +-0.45 points.
 HEADLINE_EPISODES = 10_000
 CELL_EPISODES = 2_000
+# The largest swarms: an episode of 32 or 64 drones costs 8 or 16 of 4 drones (about 20 min for 2000 of 32 on 2
+# cores), and one of 8 or 16 race drones (60 s) about as much; these still resolve a rate of a few percent to
+# about +-1.5 points.
+LARGE_EPISODES = 1_000  # obstacles-32, race-8
+LARGEST_EPISODES = 500  # obstacles-64, race-16
 QUICK_EPISODES = 8  # a pipeline check, not a measurement
 # The shipped race policy was selected on seeds 10000 and 20000 and the SITL robustness study flew 30000: the
 # matrix starts where no choice was made.
@@ -60,13 +65,14 @@ DYNAMIC_MOVING = (1, 2, 3)
 # The swarm cells' drones observe their 3 nearest neighbours: the layout of a 4-drone policy (3 others) and of the
 # 16-drone one trained with --env max_neighbours=3, so both fly every swarm size.
 SWARM_NEIGHBOURS = 3
-SWARM_FIELDS = ("num_agents", "max_neighbours")  # what a bundle is exported for (SITL flies the rest as overrides)
+SWARM_FIELDS = ("num_agents", "max_neighbours", "filter_neighbours")  # a bundle is exported for these (SITL: the rest)
 COLLISION_KINDS = ("obstacle", "drone", "gate", "floor", "bounds")  # evaluate.COLLISION_KINDS, without JAX
 SHIPPED = "pretrained"
 # The 4-drone policies observe 3 other drones: they fly the swarm cells too (the obstacles one better than a policy
 # trained at 16 drones, README).
 DEFAULT_POLICIES = {"race": SHIPPED, "race-swarm": SHIPPED, "dynamic": "pretrained:dynamic",
-                    "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles"}
+                    "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles",
+                    "race-moving": "pretrained:race-moving"}
 # A policy's kind: what it must have been trained on to fit its cells' observation layout.
 KINDS = {
     "race": f"a race policy: 4 drones, {RACE_SLOTS} static cylinders (default: {SHIPPED}, the shipped one)",
@@ -99,8 +105,10 @@ def _moving(k: int, fast: bool) -> tuple[str, ...]:
 
 
 def _drones(n: int) -> tuple[str, ...]:
-    """n drones, each observing its SWARM_NEIGHBOURS nearest: any policy of that layout flies every swarm size."""
-    return (f"num_agents={n}", f"max_neighbours={SWARM_NEIGHBOURS}")
+    """n drones, each observing its SWARM_NEIGHBOURS nearest: any policy of that layout flies every swarm size. Its
+    safety filter takes the default number of nearest neighbours (EnvConfig.filter_neighbours; policies stored
+    before that field read back without it)."""
+    return (f"num_agents={n}", f"max_neighbours={SWARM_NEIGHBOURS}", f"filter_neighbours={EnvConfig.filter_neighbours}")
 
 
 CELLS: tuple[Cell, ...] = (
@@ -111,12 +119,12 @@ CELLS: tuple[Cell, ...] = (
            HEADLINE_EPISODES if k == 3 else CELL_EPISODES, headline=k == 3) for k in DYNAMIC_MOVING),
     *(Cell(f"dynamic-{k}-fast", "dynamic", "dynamic", _moving(k, True)) for k in DYNAMIC_MOVING),
     Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}", "num_moving=2") + _moving(2, False)),
-    Cell("race-8", "race-swarm", "race", _drones(8)),
-    Cell("race-16", "race-swarm", "race", _drones(16)),
+    Cell("race-8", "race-swarm", "race", _drones(8), LARGE_EPISODES),
+    Cell("race-16", "race-swarm", "race", _drones(16), LARGEST_EPISODES),
     Cell("obstacles-8", "obstacles-swarm", "obstacles", _drones(8)),
     Cell("obstacles-16", "obstacles-swarm", "obstacles", _drones(16), HEADLINE_EPISODES, headline=True),
-    Cell("obstacles-32", "obstacles-swarm", "obstacles", _drones(32)),
-    Cell("obstacles-64", "obstacles-swarm", "obstacles", _drones(64)),
+    Cell("obstacles-32", "obstacles-swarm", "obstacles", _drones(32), LARGE_EPISODES),
+    Cell("obstacles-64", "obstacles-swarm", "obstacles", _drones(64), LARGEST_EPISODES),
 )
 CELL_NAMES = tuple(c.name for c in CELLS)
 
@@ -134,7 +142,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--only", default=None, metavar="CELL[,CELL]",
                    help=f"cells to run (a headline cell with its SITL row), from {', '.join(CELL_NAMES)}")
     p.add_argument("--quick", action="store_true", help=f"{QUICK_EPISODES} episodes a cell, cached apart: CI")
-    p.add_argument("--episodes", type=int, default=None, help="every cell with this many episodes instead")
+    p.add_argument("--sim-only", action="store_true",
+                   help="run no SITL row (cached ones are still reported): e.g. another method's policies")
+    p.add_argument("--episodes", type=int, default=None,
+                   help=f"every cell with this many episodes instead (the largest swarms at most their own "
+                        f"{LARGE_EPISODES} or {LARGEST_EPISODES})")
     p.add_argument("--seed", type=int, default=MATRIX_SEED, help=f"the episodes' seed (default {MATRIX_SEED}: unseen)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"), help="default: experiments/results")
     args = p.parse_args(argv)
@@ -167,8 +179,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def episodes_of(cell: Cell, quick: bool, episodes: int | None) -> int:
+    """``--episodes`` for every cell, except that the largest swarms keep their fewer (``cell.episodes``)."""
     if episodes is not None:
-        return episodes
+        return min(episodes, cell.episodes) if cell.episodes < CELL_EPISODES else episodes
     return QUICK_EPISODES if quick else cell.episodes
 
 
@@ -196,13 +209,6 @@ def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int) -> dict:
     if mode == "sitl":
         key.update(noise=SITL_NOISE_M, latency_ms=SITL_LATENCY_MS)
     return json.loads(json.dumps(key))
-
-
-def write_atomic(path: Path, text: str) -> None:
-    # A reader (or a crash) never sees half a file: write beside it, then rename over it.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def cached(path: Path, key: dict) -> dict | None:
@@ -268,7 +274,7 @@ def matrix(args: argparse.Namespace) -> list[dict]:
     """Every cell's row (simulation, then the headline cells in SITL), computed, reused or not run."""
     cache = args.out / ("cells-quick" if args.quick else "cells")
     jobs = [(c, "sim") for c in CELLS] + [(c, "sitl") for c in CELLS if c.headline]
-    todo = [j for j in jobs if args.only is None or j[0].name in args.only]
+    todo = [j for j in jobs if (args.only is None or j[0].name in args.only) and not (args.sim_only and j[1] == "sitl")]
     rows = []
     t_start = time.perf_counter()
     for cell, mode in jobs:
@@ -296,7 +302,8 @@ def matrix(args: argparse.Namespace) -> list[dict]:
             rows.append({**base, **row})
             continue
         if not selected:
-            rows.append({**base, "status": "not run", "reason": "not in --only", "result": None})
+            reason = "--sim-only" if args.sim_only and mode == "sitl" else "not in --only"
+            rows.append({**base, "status": "not run", "reason": reason, "result": None})
             continue
         progress(f"{episodes} episodes with {run} ...")
         row = run_cell(cell, mode, run, key, episodes, args.seed, args.out)
@@ -356,11 +363,13 @@ def table(rows: list[dict], mode: str) -> str:
 
 
 def report(rows: list[dict], args: argparse.Namespace, command: str, wall: float) -> str:
+    cells = sum(r.get("wall_s", 0.0) for r in rows if r["result"] is not None)
     policies = ", ".join(f"{k} = `{v}`" for k, v in sorted(args.policies.items()))
     quick = " **Quick run** (a pipeline check, not a measurement)." if args.quick else ""
     return (f"# Safety matrix (issue #13)\n\nCommand: `{command}`  \nPolicies: {policies}. Episodes from seed "
             f"{args.seed} (unseen: the shipped race policy was chosen on seeds 10000 and 20000).{quick} Wall time of "
-            f"this run: {wall / 60:.1f} min (2-core CPU).\n\n"
+            f"this run: {wall / 60:.1f} min; of its cells, computed now or reused: {cells / 60:.1f} min (2-core CPU)."
+            "\n\n"
             "Rates with 95 % Wilson intervals. Collision episodes by kind: episodes in which a drone hit that kind "
             "(an episode may count under several). Filter intervention %: flying drone-steps on which the safety "
             "filter changed the command; filter infeasible %: those on which its QP had no command satisfying every "

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.files import write_atomic
 
 
 def _ints(text: str) -> list[int]:
@@ -96,9 +97,7 @@ def main(argv: list[str] | None = None) -> int:
           f"training); env-steps/s with random actions at {args.bench_worlds} worlds. Wall time: {wall / 60:.1f} min "
           f"(2-core CPU).\n\n{table(rows)}\n")
     for suffix, text in ((".md", md), (".json", json.dumps(rows, indent=2, default=float) + "\n")):
-        tmp = args.out / f"swarm_size{suffix}.tmp"
-        tmp.write_text(text)
-        tmp.replace(args.out / f"swarm_size{suffix}")
+        write_atomic(args.out / f"swarm_size{suffix}", text)
     print(md)
     return 0
 

@@ -1,5 +1,6 @@
 """Environment API: shapes, resets, purity under jit/vmap/scan, wrappers, episode outcome, bad input."""
 
+import dataclasses
 import math
 
 import chex
@@ -336,3 +337,36 @@ def test_crossing_swarms_start_apart_inside_the_arena_in_lines_of_at_most_16(n):
     assert lines[-1] == pytest.approx(-4.0) and (n < 64 or lines[0] == pytest.approx(-5.2))
     # Mirrored: every drone crosses the same 8 m (plus its line's depth on both sides).
     np.testing.assert_allclose(goal[:, 0] + start[:, 0], 0.0, atol=1e-5)
+
+
+def test_the_filters_observation_adds_nearest_neighbours_after_the_policys_own():
+    """``filter_neighbours``: the safety filter's observation (``SwarmEnv.filter_obs``) holds the K_f nearest drones,
+    through the same motion-capture noise and delay, and begins with the policy's observation, which is the one the
+    env gives without the field (so a policy flies as it was trained)."""
+    from aswarm.core.layout import neighbour_slots
+
+    # (drones, max_neighbours, filter_neighbours) -> (policy's rows, filter's rows)
+    assert neighbour_slots(4, 0, 8) == (3, 3)  # every other drone observed: nothing to add
+    assert neighbour_slots(32, 3, 8) == (3, 8)
+    assert neighbour_slots(6, 3, 8) == (3, 5)  # at most every other drone
+    assert neighbour_slots(16, 3, 2) == (3, 3) and neighbour_slots(16, 3, 0) == (3, 3)
+    kw = dict(num_agents=6, max_neighbours=2, randomize=dataclasses.replace(
+        envs.EnvConfig().randomize, mocap_noise=(0.005, 0.005), mocap_delay=(1, 1)))
+    wide, narrow = envs.make("obstacles", filter_neighbours=4, **kw), envs.make("obstacles", filter_neighbours=0, **kw)
+    assert (wide.filter_layout.num_neighbours, narrow.filter_layout.num_neighbours) == (4, 2)
+    cmd = jnp.tile(jnp.array([[1.0, 0.3, 0.2]]), (6, 1))
+    states = []
+    for env in (wide, narrow):
+        s = jax.jit(env.reset)(jax.random.PRNGKey(5))
+        states.append((s, jax.jit(env.step)(s, cmd)))
+    for sw, sn in zip(*states):
+        np.testing.assert_array_equal(sw.obs, sn.obs)
+        np.testing.assert_array_equal(sw.critic_obs, sn.critic_obs)
+        f = np.asarray(wide.filter_obs(sw))
+        assert f.shape == (6, wide.filter_layout.size) and narrow.filter_obs(sn) is None
+        np.testing.assert_array_equal(f[:, :wide.observation_size], sw.obs)
+        nbr = wide.filter_layout.split(f)[2]  # [n, 4, 7]: the 4 nearest, nearest first
+        dist = np.linalg.norm(nbr[..., :3], axis=-1)
+        assert np.all(nbr[..., 6] == 1) and np.all(np.diff(dist, axis=-1) >= 0)
+    with pytest.raises(ValueError, match=r"invalid filter_neighbours=-1: must be >= 0"):
+        envs.make("obstacles", filter_neighbours=-1)

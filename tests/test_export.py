@@ -250,3 +250,67 @@ def test_a_k_nearest_policy_exports_for_another_swarm_size_and_flies_it(tmp_path
                      "num_obstacles=3"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "the observation layouts differ" in err and not (tmp_path / "b3").exists()
+
+
+def test_a_filter_that_sees_more_neighbours_than_the_policy_exports_and_flies_as_in_jax(tmp_path):
+    """``filter_neighbours``: the 4-drone `obstacles` policy (3 neighbours) flown by 5 drones, its filter on all 4
+    others. The bundle says so, the runtime builds the filter's observation, and numpy equals ``Agent.act``."""
+    from aswarm.flight import runtime
+
+    extra = ["num_agents=5", "max_neighbours=3", "filter_neighbours=4"]
+    out = tmp_path / "b5"
+    assert cli.main(["export", "--checkpoint", "pretrained:obstacles", "--out", str(out),
+                     *(a for o in extra for a in ("--env", o))]) == 0
+    b = fb.load_bundle(out)
+    assert b.manifest["env"]["filter_neighbours"] == 4
+    assert (b.layout.num_neighbours, b.filter_layout.num_neighbours) == (3, 4)
+    _, agent, st = evaluate.load_agent("pretrained:obstacles", None, extra)
+    env = agent.env
+    assert env.wide_filter and env.filter_layout == b.filter_layout
+    s = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    obs, wide = np.asarray(s.obs, np.float64), np.asarray(env.filter_obs(s), np.float64)
+    assert wide.shape == (5, b.filter_layout.size) and np.array_equal(wide[:, :b.layout.size], obs)
+    with jax.enable_x64(True):
+        want = jax.jit(agent.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))
+    np.testing.assert_allclose(runtime.run_policy(b, wide).u, np.asarray(want), rtol=0, atol=1e-9)
+    # The runtime builds the filter's observation from poses and flies all 5 drones with it.
+    ctl = runtime.FlightController(b, 5)
+    ctl.reset(goals=np.stack([np.arange(5) * 0.5, np.full(5, 2.0), np.ones(5)], -1))
+    step = ctl.step(np.stack([np.arange(5) * 0.5, np.zeros(5), np.ones(5)], -1), np.tile([1.0, 0, 0, 0], (5, 1)),
+                    np.zeros(5), now=0.0)
+    assert step.velocity.shape == (5, 3) and np.all(np.isfinite(step.velocity))
+    narrow, full = b.layout.size, b.filter_layout.size
+    with pytest.raises(ValueError, match=f"observations of size {narrow}: this bundle.s are {full}"):
+        runtime.run_policy(b, wide[:, :narrow])
+
+
+def test_the_filter_keeps_apart_a_neighbour_the_policy_does_not_observe():
+    """Three drones in a row along x, 0.5 m apart, the middle one (0) commanded at 1 m/s towards drone 2 at +x; drone 1
+    at -x is nearer (0.45 m). A policy observing its one nearest sees drone 1 only: a filter on the policy's rows lets
+    the command through; one on the 2 nearest slows it to what the reciprocal barrier allows (hand-derived below)."""
+    from aswarm.core import observation
+    from aswarm.core.layout import ObsLayout
+    from aswarm.core.safety import SafetyFilterConfig
+    from aswarm.flight import cbf
+
+    pos = np.array([[0.0, 0.0, 1.0], [-0.45, 0.0, 1.0], [0.5, 0.0, 1.0]])
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    zero = np.zeros((3, 3))
+    goal = np.array([[[9.0, 0.0, 1.0]]] * 3)
+    no_cyl = np.zeros((0, 2))
+    r, margin, gain = 0.06, 0.1, 1.0
+    sf = SafetyFilterConfig(margin=margin)
+
+    def filtered(k: int) -> np.ndarray:
+        obs = observation.observe(pos, quat, zero, zero, goal, np.zeros_like(goal), np.zeros(3, int), np.ones(3, bool),
+                                  no_cyl, no_cyl, np.zeros(0), np.zeros(0, bool), r, (-5.0, -5.0, 0.0),
+                                  (5.0, 5.0, 3.0), k)
+        cmd = np.array([[1.0, 0.0, 0.0]] * 3)
+        res = cbf.filter_from_obs(ObsLayout(0, k), obs, cmd, np.full(3, gain), 2.0, r, sf)
+        return res.u[0]
+
+    np.testing.assert_allclose(filtered(1), [1.0, 0.0, 0.0], atol=1e-6)  # drone 2 unseen: nothing holds it back
+    # Drone 2's row: h = |d| - 2 r - margin = 0.5 - 0.22 = 0.28 m; drone 0 takes its share 0.5 of the gain's
+    # allowance: u_x <= 0.5 * gain * h = 0.14 m/s (both at rest).
+    h = 0.5 - 2 * r - margin
+    np.testing.assert_allclose(filtered(2)[0], 0.5 * gain * h, atol=1e-5)

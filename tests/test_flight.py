@@ -191,7 +191,7 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
     from aswarm.envs.dynamics import DroneState
 
     n = 5
-    env = envs.make("race", num_agents=n, max_neighbours=k)
+    env = envs.make("race", num_agents=n, max_neighbours=k, filter_neighbours=0)  # the policy's rows alone
     s = jax.jit(env.reset)(jax.random.PRNGKey(1))
     rng = np.random.default_rng(0)
     pos = rng.uniform(-1.5, 1.5, (n, 3)) + [0.0, 0.0, 1.6]

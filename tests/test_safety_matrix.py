@@ -10,8 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _module():
-    spec = importlib.util.spec_from_file_location("safety_matrix", ROOT / "experiments" / "safety_matrix.py")
+def _module(name: str = "safety_matrix"):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # its dataclasses look their module up while they are built
     spec.loader.exec_module(mod)
@@ -64,6 +64,12 @@ def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
     assert (out / "bundles" / "race" / "manifest.json").stat().st_mtime_ns == bundle
     again = {(r["cell"], r["mode"]): r for r in json.loads((out / "safety_matrix_quick.json").read_text())["cells"]}
     assert again[("race", "sim")]["result"] == race["result"]
+    # --sim-only flies no SITL row but still reports a finished one; an unfinished one says why it did not run.
+    assert mod.main(argv[:-2] + ["--sim-only", "--out", str(out)]) == 0
+    capsys.readouterr()
+    sim_only = {(r["cell"], r["mode"]): r for r in json.loads((out / "safety_matrix_quick.json").read_text())["cells"]}
+    assert sim_only[("race", "sitl")]["result"] == sitl["result"]
+    assert sim_only[("dynamic-3", "sitl")]["reason"] == "--sim-only"
 
 
 def test_cached_cell_is_recomputed_when_its_key_changes(tmp_path):
@@ -90,7 +96,11 @@ def test_cells_of_the_issue():
     period = float(by["dynamic-2-fast"].overrides[-1].split("=")[1])
     assert period * 1.5 == pytest.approx(mod.EnvConfig.moving_period)
     assert by["race-moving2"].overrides == ("num_obstacles=8", "num_moving=2", "min_moving=2", "max_moving=2")
-    assert by["obstacles-64"].overrides == ("num_agents=64", "max_neighbours=3")
+    assert by["obstacles-64"].overrides == ("num_agents=64", "max_neighbours=3", "filter_neighbours=8")
+    # --episodes sets every cell's, but the largest swarms keep their fewer.
+    got = [mod.episodes_of(by[c], False, 2000) for c in ("race", "race-8", "obstacles-32", "obstacles-64")]
+    assert got == [2000, 1000, 1000, 500]
+    assert [mod.episodes_of(by[c], True, 2) for c in ("race", "obstacles-64")] == [2, 2]
     # A cell's own policy wins over its kind's.
     policies = {"dynamic": "runs/a", "dynamic-1": "runs/b"}
     assert mod.policy_of(by["dynamic-1"], policies) == ("dynamic-1", "runs/b")
@@ -113,3 +123,30 @@ def test_bad_arguments_are_one_line_errors(argv, message, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
+
+
+def test_two_matrices_compare_cell_by_cell_with_newcombe_intervals(tmp_path, capsys):
+    from aswarm.analysis.evaluate import wilson
+
+    mod = _module("compare_matrices")
+    # Newcombe (1998), Statistics in Medicine 17, table II, example (a): 56/70 against 48/80, method 10: the
+    # difference 0.2 has the 95 % interval [0.0524, 0.3339].
+    lo, hi = mod.newcombe(56 / 70, wilson(56, 70), 48 / 80, wilson(48, 80))
+    assert (round(lo, 4), round(hi, 4)) == (0.0524, 0.3339)
+
+    def matrix(path, success, collisions, n):
+        r = {"episodes": n, "mission_time": 30.0, "success_rate": success / n, "success_ci95": wilson(success, n),
+             "collision_rate": collisions / n, "collision_ci95": wilson(collisions, n)}
+        cells = [{"cell": "race", "mode": "sim", "result": r}, {"cell": "lab", "mode": "sim", "result": None}]
+        path.write_text(json.dumps({"cells": cells}))
+        return path
+
+    a, b = matrix(tmp_path / "a.json", 1990, 2, 2000), matrix(tmp_path / "b.json", 950, 40, 1000)
+    assert mod.main([str(a), str(b), "--labels", "full,fixed", "--out", str(tmp_path / "c.md")]) == 0
+    row = next(line for line in (tmp_path / "c.md").read_text().splitlines() if line.startswith("| race"))
+    assert "| 2000 / 1000 |" in row and "99.5 [99.1, 99.7]" in row and "-3.9 [" in row and "] *" in row
+    assert "lab" not in (tmp_path / "c.md").read_text()  # not run in either: no row
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"cells": [{"cell": "lab", "mode": "sim", "result": {"episodes": 1}}]}))
+    with pytest.raises(SystemExit, match="no cell in common"):
+        mod.main([str(a), str(other)])

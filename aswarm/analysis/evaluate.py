@@ -11,7 +11,6 @@ import dataclasses
 import io
 import json
 import math
-import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,6 +24,7 @@ from aswarm.agents.config import TrainConfig
 from aswarm.agents.train import Agent
 from aswarm.analysis.protocol import EVAL_SEED
 from aswarm.envs.collisions import KINDS
+from aswarm.files import write_atomic
 from aswarm.training import checkpoint
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "race"
@@ -82,7 +82,7 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         def body(carry, _):
             s, rec, ended, interventions, infeasible, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
-            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s))
+            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), env.filter_obs(s))
             s = step(s, res.u)
             first = (s.done > 0) & ~ended
             rec = jax.tree.map(lambda r, m: jnp.where(first, m, r), rec, s.metrics)
@@ -278,13 +278,6 @@ def _flat(result: dict) -> dict:
     return row
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    # A reader (or a crash) never sees half a file: write beside it, then rename over it.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def write_report(result: dict, out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``eval_<scenario>.json`` and ``.csv`` (one header row, one value row) into ``out_dir``."""
     out_dir = Path(out_dir)
@@ -298,8 +291,8 @@ def write_report(result: dict, out_dir: str | Path) -> tuple[Path, Path]:
     writer.writeheader()
     writer.writerow(row)
     json_path, csv_path = out_dir / f"{stem}.json", out_dir / f"{stem}.csv"
-    _write_atomic(json_path, json.dumps(result, indent=2) + "\n")
-    _write_atomic(csv_path, buf.getvalue())
+    write_atomic(json_path, json.dumps(result, indent=2) + "\n")
+    write_atomic(csv_path, buf.getvalue())
     return json_path, csv_path
 
 

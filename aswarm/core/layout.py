@@ -105,6 +105,19 @@ CYL = FieldGroup("cylinder", CYL_FIELDS)
 NBR = FieldGroup("neighbour", NBR_FIELDS)
 
 
+def neighbour_slots(num_agents: int, max_neighbours: int, filter_neighbours: int = 0) -> tuple[int, int]:
+    """(neighbour rows of the policy's observation, neighbour rows the safety filter takes) for a swarm of
+    ``num_agents`` (``EnvConfig.max_neighbours`` and ``filter_neighbours``). The policy sees every other drone
+    (``max_neighbours`` 0) or its K nearest; the filter sees as many, or, when ``filter_neighbours`` is larger than
+    K, the ``filter_neighbours`` nearest (at most every other drone): an observation built with more nearest rows
+    begins with the policy's own, nearest first, so the policy reads a prefix of the filter's."""
+    others = max(num_agents - 1, 0)
+    policy = max_neighbours or others
+    if not max_neighbours or filter_neighbours <= policy:
+        return policy, policy
+    return policy, max(policy, min(filter_neighbours, others))
+
+
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
     """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""

@@ -28,7 +28,7 @@ from aswarm.core import geometry as geo
 from aswarm.core.command import advance_reference, setpoint_position
 from aswarm.core.command import limit_change as limit_command_change
 from aswarm.core.estimation import slope_weights
-from aswarm.core.layout import ObsLayout
+from aswarm.core.layout import ObsLayout, neighbour_slots
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
 from aswarm.envs import firmware_mellinger, firmware_pid, randomization
@@ -74,7 +74,7 @@ class Onboard:
     pid: firmware_pid.PidState | None  # controller "pid"; None for "geometric" (it has no memory)
     rpm: jax.Array  # [n, 4] rotor speeds (RPM), lagging their commands where cf.motor_tau > 0
     commands: jax.Array  # [2, n, 3] the velocity commands of the last two policy steps, the newest first
-    obs_history: jax.Array  # [max_delay, n, obs_dim] the policy's last observations, the newest first
+    obs_history: jax.Array  # [max_delay, n, obs_dim] the last observations (with filter_obs's rows), newest first
     key: jax.Array  # draws the motion-capture noise of each step
     params: EnvParams | None  # this episode's draw (domain randomisation); None where nothing is drawn
     # [velocity_window, n, 3] the noisy positions the seen velocities are fitted to, the newest first; None
@@ -107,6 +107,10 @@ class State:
     # as data; None keeps the numbers of every run and checkpoint made before this split.
     params: EnvParams | None
     onboard: Onboard
+    # [n_agents, filter obs_dim] what the safety filter sees where it takes more neighbours than the policy
+    # (EnvConfig.filter_neighbours): the observation with the filter's nearest rows, whose prefix is ``obs``. None
+    # where the filter takes the policy's (SwarmEnv.filter_obs).
+    filter_obs: jax.Array | None = None
 
 
 class SwarmEnv:
@@ -119,7 +123,12 @@ class SwarmEnv:
         self.mj_model, self.mjx_model = physics_model(config.num_agents, config.sim_freq, config.cf)
         self._data0 = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])  # see physics_model
         n = config.num_agents
-        self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=config.max_neighbours or n - 1)
+        k_policy, k_filter = neighbour_slots(n, config.max_neighbours, config.filter_neighbours)
+        self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_policy)
+        # The safety filter's rows (SwarmEnv.filter_obs): the policy's, or more nearest neighbours (a static choice:
+        # without them every program traces as before the field).
+        self.filter_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_filter)
+        self.wide_filter = k_filter > k_policy
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
         self.default_params = EnvParams.from_config(config)
@@ -191,7 +200,7 @@ class SwarmEnv:
         elif cfg.controller == "mellinger":
             mel = firmware_mellinger.initial_state(drones.ang_vel, hover, p.mellinger)
             reference = jnp.broadcast_to(drones.pos, (3,) + drones.pos.shape)
-        obs = self._observe(drones, layout, tracker, jnp.zeros(()))
+        obs = self._observe(drones, layout, tracker, jnp.zeros(()))  # the filter's (wider, or the policy's)
         w = self._velocity_weights
         history = None if w is None else jnp.broadcast_to(drones.pos, (w.shape[0],) + drones.pos.shape)
         onboard = Onboard(pid=pid, rpm=jnp.broadcast_to(hover_rpm, (n, 4)), commands=jnp.zeros((2, n, 3)),
@@ -199,9 +208,10 @@ class SwarmEnv:
                           key=jax.random.fold_in(key, 2), params=drawn,
                           pos_history=history, mellinger=mel, reference=reference)
         seen, onboard = self._mocap(onboard, obs, drones, layout, tracker, jnp.zeros(()), p)
-        state = State(data=data, obs=seen, critic_obs=obs.reshape(-1), reward=zeros, cost=zeros,
-                      done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout, tracker=tracker,
-                      metrics={}, info={}, params=params, onboard=onboard)
+        state = State(data=data, obs=self._policy_view(seen), critic_obs=self._policy_view(obs).reshape(-1),
+                      reward=zeros, cost=zeros, done=jnp.zeros(()), truncated=jnp.zeros(()), layout=layout,
+                      tracker=tracker, metrics={}, info={}, params=params, onboard=onboard,
+                      filter_obs=seen if self.wide_filter else None)
         return state.replace(metrics=self._metrics(tracker))
 
     # ------------------------------------------------------------------- step
@@ -307,9 +317,9 @@ class SwarmEnv:
         obs = self._observe(drones, layout, tr, t)
         seen, ob = self._mocap(ob, obs, drones, layout, tr, t, p)
         return state.replace(
-            data=data, obs=seen, critic_obs=obs.reshape(-1), reward=reward, cost=cost,
-            done=(terminated | truncated).astype(jnp.float32), truncated=truncated.astype(jnp.float32),
-            tracker=tr, metrics=self._metrics(tr), onboard=ob,
+            data=data, obs=self._policy_view(seen), critic_obs=self._policy_view(obs).reshape(-1), reward=reward,
+            cost=cost, done=(terminated | truncated).astype(jnp.float32), truncated=truncated.astype(jnp.float32),
+            tracker=tr, metrics=self._metrics(tr), onboard=ob, filter_obs=seen if self.wide_filter else None,
         )
 
     # --------------------------------------------------------------- helpers
@@ -347,6 +357,15 @@ class SwarmEnv:
         seen = jnp.concatenate([fresh[None], ob.obs_history])  # [k]: the observation of k steps ago
         delayed = seen[jnp.minimum(p.mocap_delay, ob.obs_history.shape[0]).astype(jnp.int32)]
         return delayed, ob.replace(obs_history=seen[:ob.obs_history.shape[0]], key=key)
+
+    def _policy_view(self, obs: jax.Array) -> jax.Array:
+        """The policy's observation [..., n, D] from the filter's: its first D columns (the nearest rows first)."""
+        return obs[..., :self.observation_size] if self.wide_filter else obs
+
+    def filter_obs(self, state: State) -> jax.Array | None:
+        """[..., n, D_filter] the observation the safety filter's rows come from (layout ``filter_layout``) where it
+        takes more neighbours than the policy; None where it takes the policy's (``state.obs``). Batches too."""
+        return state.filter_obs
 
     def cylinder_accel(self, state: State) -> jax.Array | None:
         """[..., M] each cylinder's acceleration bound (m/s², 0 if static) for the safety filter; None where no
@@ -427,7 +446,8 @@ class SwarmEnv:
         return tr, jnp.where(active, jnp.min(gaps, -1), geo.FAR)
 
     def _observe(self, drones: DroneState, layout: Layout, tr: Tracker, t) -> jax.Array:
-        """Every drone's observation [n, D] (:func:`aswarm.core.observation.observe`, as the flight runtime's)."""
+        """Every drone's observation [n, D] (:func:`aswarm.core.observation.observe`, as the flight runtime's), with
+        the filter's neighbour rows where it takes more than the policy (``_policy_view`` cuts the policy's)."""
         cfg = self.config
         if self.kind == "track":
             normals = jnp.broadcast_to(geo.horizontal(layout.gate_yaw), layout.waypoints.shape)
@@ -436,7 +456,8 @@ class SwarmEnv:
         cyl_pos, cyl_vel = cylinders_at(layout, t)
         return observe(drones.pos, drones.quat, drones.vel, drones.ang_vel, layout.waypoints, normals, tr.target,
                        ~tr.finished, cyl_pos, cyl_vel, layout.cyl_radius, layout.cyl_present,
-                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high, cfg.max_neighbours)
+                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high,
+                       self.filter_layout.num_neighbours if self.wide_filter else cfg.max_neighbours)
 
     def _metrics(self, tr: Tracker) -> dict:
         """Episode outcome so far; read it on the step where ``done`` is 1."""

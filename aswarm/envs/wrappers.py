@@ -49,6 +49,7 @@ class AutoResetWrapper(Wrapper):
             data=pick(fresh.data, nxt.data), obs=pick(fresh.obs, nxt.obs),
             critic_obs=pick(fresh.critic_obs, nxt.critic_obs), layout=pick(fresh.layout, nxt.layout),
             tracker=pick(fresh.tracker, nxt.tracker), onboard=pick(fresh.onboard, nxt.onboard),
+            filter_obs=pick(fresh.filter_obs, nxt.filter_obs),
         )
         info = dict(nxt.info, reset_key=key, final_obs=nxt.obs, final_critic_obs=nxt.critic_obs)
         return out.replace(info=info)

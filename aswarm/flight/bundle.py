@@ -12,6 +12,7 @@ arrays, missing, misshapen or non-finite arrays, or an observation layout other 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aswarm.core.layout import OBS_NORM_CLIP, ObsLayout
+from aswarm.core.layout import OBS_NORM_CLIP, ObsLayout, neighbour_slots
 from aswarm.core.safety import SafetyFilterConfig, from_manifest
 from aswarm.flight.policy import PolicyWeights, weights_from_arrays
 
@@ -162,6 +163,14 @@ class Bundle:
     def max_neighbours(self) -> int:
         """0: every other drone is observed, in index order; K: the K nearest (``EnvConfig.max_neighbours``)."""
         return int(self.env.get("max_neighbours", 0))
+
+    @functools.cached_property
+    def filter_layout(self) -> ObsLayout:
+        """The layout of the observations the runtime builds and the safety filter's rows come from: the policy's
+        (``layout``), or with more nearest neighbours (``EnvConfig.filter_neighbours``; bundles from before it: the
+        policy's), of which the policy reads the prefix ``layout.size``."""
+        _, k = neighbour_slots(self.num_agents, self.max_neighbours, int(self.env.get("filter_neighbours", 0)))
+        return dataclasses.replace(self.layout, num_neighbours=k)
 
     @property
     def max_speed(self) -> float:

@@ -152,6 +152,9 @@ class FlightController:
         self._half_opening = float(env["gate_half_opening"])
         self._goal_radius = float(env["goal_radius"])
         self._collision_radius = float(env["collision_radius"])
+        # The safety filter sees more nearest neighbours than the policy (bundle.filter_layout): the observations
+        # are built with its rows and the policy reads their prefix (run_policy).
+        self._wide_filter = bundle.filter_layout.num_neighbours > bundle.layout.num_neighbours
         self._lead: tuple[int, ...] | None = None
 
     # ------------------------------------------------------------------ course
@@ -297,7 +300,7 @@ class FlightController:
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
                       cyl_present, self._collision_radius, self._arena_low, self._arena_high,
-                      self.bundle.max_neighbours)
+                      self.bundle.filter_layout.num_neighbours if self._wide_filter else self.bundle.max_neighbours)
         pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles))
 
         u = pol.u
@@ -412,9 +415,10 @@ class FlightController:
 
 def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray,
                     cyl_accel: np.ndarray | None = None) -> cbf.FilterResult:
-    """The bundle's safety filter on raw observations [..., n, D] and commands [..., n, 3]; cyl_accel [..., M]."""
+    """The bundle's safety filter on raw observations [..., n, D] (``bundle.filter_layout``) and commands
+    [..., n, 3]; cyl_accel [..., M]."""
     sf = bundle.safety_filter
-    return cbf.filter_from_obs(bundle.layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
+    return cbf.filter_from_obs(bundle.filter_layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
                                bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]), cyl_accel)
 
 
@@ -440,8 +444,16 @@ class PolicyOutput:
 
 def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None) -> PolicyOutput:
     """Normalizer, actor, gain and filter on raw observations [..., n, D]: what ``Agent.act`` computes in JAX
-    (``cyl_accel`` [..., M]: the cylinders' acceleration bounds, m/s²)."""
+    (``cyl_accel`` [..., M]: the cylinders' acceleration bounds, m/s²). The observations are in
+    ``bundle.filter_layout``: the policy's own, or with the filter's extra nearest neighbours after the policy's
+    (``EnvConfig.filter_neighbours``), of which the networks read the prefix."""
     sf, w = bundle.safety_filter, bundle.weights
+    wide, size = obs, bundle.layout.size
+    if obs.shape[-1] != bundle.filter_layout.size:
+        raise ValueError(f"observations of size {obs.shape[-1]}: this bundle's are {bundle.filter_layout.size}"
+                         + (f" (the policy reads the first {size})" if size != bundle.filter_layout.size else ""))
+    if size != obs.shape[-1]:
+        obs = obs[..., :size]
     nobs = policy.normalize(w, obs)
     cmd = policy.actor_command(w, nobs, bundle.max_speed)
     if sf.get("gain_source") == "attention":
@@ -452,7 +464,7 @@ def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = N
     if not sf["enabled"]:
         off = np.zeros(obs.shape[:-1], bool)
         return PolicyOutput(nominal=cmd, u=cmd, gain=gain, intervened=off, converged=~off)
-    res = filter_commands(bundle, obs, cmd, gain, cyl_accel)
+    res = filter_commands(bundle, wide, cmd, gain, cyl_accel)
     return PolicyOutput(nominal=cmd, u=res.u, gain=gain, intervened=res.intervened, converged=res.converged)
 
 
