@@ -340,7 +340,7 @@ def test_crossing_swarms_start_apart_inside_the_arena_in_lines_of_at_most_16(n):
 
 
 def test_the_filters_observation_adds_nearest_neighbours_after_the_policys_own():
-    """``filter_neighbours``: the safety filter's observation (``SwarmEnv.filter_obs``) holds the K_f nearest drones,
+    """``filter_neighbours``: the safety filter's observation (``State.filter_obs``) holds the K_f nearest drones,
     through the same motion-capture noise and delay, and begins with the policy's observation, which is the one the
     env gives without the field (so a policy flies as it was trained)."""
     from aswarm.core.layout import neighbour_slots
@@ -362,8 +362,8 @@ def test_the_filters_observation_adds_nearest_neighbours_after_the_policys_own()
     for sw, sn in zip(*states):
         np.testing.assert_array_equal(sw.obs, sn.obs)
         np.testing.assert_array_equal(sw.critic_obs, sn.critic_obs)
-        f = np.asarray(wide.filter_obs(sw))
-        assert f.shape == (6, wide.filter_layout.size) and narrow.filter_obs(sn) is None
+        f = np.asarray(sw.filter_obs)
+        assert f.shape == (6, wide.filter_layout.size) and sn.filter_obs is None
         np.testing.assert_array_equal(f[:, :wide.observation_size], sw.obs)
         nbr = wide.filter_layout.split(f)[2]  # [n, 4, 7]: the 4 nearest, nearest first
         dist = np.linalg.norm(nbr[..., :3], axis=-1)

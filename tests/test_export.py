@@ -268,7 +268,7 @@ def test_a_filter_that_sees_more_neighbours_than_the_policy_exports_and_flies_as
     env = agent.env
     assert env.wide_filter and env.filter_layout == b.filter_layout
     s = jax.jit(env.reset)(jax.random.PRNGKey(3))
-    obs, wide = np.asarray(s.obs, np.float64), np.asarray(env.filter_obs(s), np.float64)
+    obs, wide = np.asarray(s.obs, np.float64), np.asarray(s.filter_obs, np.float64)
     assert wide.shape == (5, b.filter_layout.size) and np.array_equal(wide[:, :b.layout.size], obs)
     with jax.enable_x64(True):
         want = jax.jit(agent.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))

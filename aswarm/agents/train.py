@@ -140,7 +140,7 @@ class Agent:
         """The CBF safety filter's whole result on commands [.., n, 3] (its slack, convergence, active rows);
         a method without a filter passes the commands through, with no slack, no row and nothing changed.
         ``cyl_accel`` [.., M]: the cylinders' acceleration bounds (``SwarmEnv.cylinder_accel``); ``filter_obs``: the
-        rows' observation where the filter takes more neighbours than the policy (``SwarmEnv.filter_obs``; None:
+        rows' observation where the filter takes more neighbours than the policy (``State.filter_obs``; None:
         ``obs``). The gain comes from the policy's own observation either way."""
         if not self.config.uses_filter:
             zeros = jnp.zeros(cmd.shape[:-1])
@@ -270,7 +270,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
             obs = env_state.obs
             cmd, raw, logp = ag.policy(ts.params, ts.obs_norm, obs, k)
             safe, intervened, corr = ag.safe_command(ts.params, ts.obs_norm, obs, cmd, env.cylinder_accel(env_state),
-                                                     env.filter_obs(env_state))
+                                                     env_state.filter_obs)
             nxt = wenv.step(env_state, safe)
             done = nxt.done
             episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}

@@ -108,8 +108,8 @@ class State:
     params: EnvParams | None
     onboard: Onboard
     # [n_agents, filter obs_dim] what the safety filter sees where it takes more neighbours than the policy
-    # (EnvConfig.filter_neighbours): the observation with the filter's nearest rows, whose prefix is ``obs``. None
-    # where the filter takes the policy's (SwarmEnv.filter_obs).
+    # (EnvConfig.filter_neighbours): the observation with the filter's nearest rows (SwarmEnv.filter_layout), whose
+    # prefix is ``obs``. None where the filter takes the policy's rows, from ``obs``.
     filter_obs: jax.Array | None = None
 
 
@@ -125,7 +125,7 @@ class SwarmEnv:
         n = config.num_agents
         k_policy, k_filter = neighbour_slots(n, config.max_neighbours, config.filter_neighbours)
         self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_policy)
-        # The safety filter's rows (SwarmEnv.filter_obs): the policy's, or more nearest neighbours (a static choice:
+        # The safety filter's rows (State.filter_obs): the policy's, or more nearest neighbours (a static choice:
         # without them every program traces as before the field).
         self.filter_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_filter)
         self.wide_filter = k_filter > k_policy
@@ -361,11 +361,6 @@ class SwarmEnv:
     def _policy_view(self, obs: jax.Array) -> jax.Array:
         """The policy's observation [..., n, D] from the filter's: its first D columns (the nearest rows first)."""
         return obs[..., :self.observation_size] if self.wide_filter else obs
-
-    def filter_obs(self, state: State) -> jax.Array | None:
-        """[..., n, D_filter] the observation the safety filter's rows come from (layout ``filter_layout``) where it
-        takes more neighbours than the policy; None where it takes the policy's (``state.obs``). Batches too."""
-        return state.filter_obs
 
     def cylinder_accel(self, state: State) -> jax.Array | None:
         """[..., M] each cylinder's acceleration bound (m/s², 0 if static) for the safety filter; None where no
