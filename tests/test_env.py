@@ -343,13 +343,15 @@ def test_the_filters_observation_adds_nearest_neighbours_after_the_policys_own()
     """``filter_neighbours``: the safety filter's observation (``State.filter_obs``) holds the K_f nearest drones,
     through the same motion-capture noise and delay, and begins with the policy's observation, which is the one the
     env gives without the field (so a policy flies as it was trained)."""
-    from aswarm.core.layout import neighbour_slots
+    from aswarm.core.layout import neighbour_slots, observed_neighbours
 
     # (drones, max_neighbours, filter_neighbours) -> (policy's rows, filter's rows)
     assert neighbour_slots(4, 0, 8) == (3, 3)  # every other drone observed: nothing to add
     assert neighbour_slots(32, 3, 8) == (3, 8)
     assert neighbour_slots(6, 3, 8) == (3, 5)  # at most every other drone
     assert neighbour_slots(16, 3, 2) == (3, 3) and neighbour_slots(16, 3, 0) == (3, 3)
+    # what simulator and flight runtime ask observe() for: 0 keeps every other drone in index order
+    assert [observed_neighbours(*a) for a in ((4, 0, 8), (32, 3, 8), (6, 3, 8), (16, 3, 2))] == [0, 8, 5, 3]
     kw = dict(num_agents=6, max_neighbours=2, randomize=dataclasses.replace(
         envs.EnvConfig().randomize, mocap_noise=(0.005, 0.005), mocap_delay=(1, 1)))
     wide, narrow = envs.make("obstacles", filter_neighbours=4, **kw), envs.make("obstacles", filter_neighbours=0, **kw)

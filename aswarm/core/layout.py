@@ -118,6 +118,14 @@ def neighbour_slots(num_agents: int, max_neighbours: int, filter_neighbours: int
     return policy, max(policy, min(filter_neighbours, others))
 
 
+def observed_neighbours(num_agents: int, max_neighbours: int, filter_neighbours: int = 0) -> int:
+    """``observe``'s ``max_neighbours`` for the observation the simulator and the flight runtime build: the filter's
+    nearest rows where it takes more than the policy (:func:`neighbour_slots`), else ``max_neighbours`` itself (0:
+    every other drone in index order)."""
+    policy, wide = neighbour_slots(num_agents, max_neighbours, filter_neighbours)
+    return wide if wide > policy else max_neighbours
+
+
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
     """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""

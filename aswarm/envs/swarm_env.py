@@ -28,7 +28,7 @@ from aswarm.core import geometry as geo
 from aswarm.core.command import advance_reference, setpoint_position
 from aswarm.core.command import limit_change as limit_command_change
 from aswarm.core.estimation import slope_weights
-from aswarm.core.layout import ObsLayout, neighbour_slots
+from aswarm.core.layout import ObsLayout, neighbour_slots, observed_neighbours
 from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
 from aswarm.envs import firmware_mellinger, firmware_pid, randomization
@@ -129,6 +129,7 @@ class SwarmEnv:
         # without them every program traces as before the field).
         self.filter_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_filter)
         self.wide_filter = k_filter > k_policy
+        self._observed = observed_neighbours(n, config.max_neighbours, config.filter_neighbours)  # observe's argument
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
         self.default_params = EnvParams.from_config(config)
@@ -451,8 +452,7 @@ class SwarmEnv:
         cyl_pos, cyl_vel = cylinders_at(layout, t)
         return observe(drones.pos, drones.quat, drones.vel, drones.ang_vel, layout.waypoints, normals, tr.target,
                        ~tr.finished, cyl_pos, cyl_vel, layout.cyl_radius, layout.cyl_present,
-                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high,
-                       self.filter_layout.num_neighbours if self.wide_filter else cfg.max_neighbours)
+                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high, self._observed)
 
     def _metrics(self, tr: Tracker) -> dict:
         """Episode outcome so far; read it on the step where ``done`` is 1."""

@@ -164,12 +164,17 @@ class Bundle:
         """0: every other drone is observed, in index order; K: the K nearest (``EnvConfig.max_neighbours``)."""
         return int(self.env.get("max_neighbours", 0))
 
+    @property
+    def filter_neighbours(self) -> int:
+        """``EnvConfig.filter_neighbours`` (bundles from before it: 0, the filter on the policy's rows)."""
+        return int(self.env.get("filter_neighbours", 0))
+
     @functools.cached_property
     def filter_layout(self) -> ObsLayout:
         """The layout of the observations the runtime builds and the safety filter's rows come from: the policy's
         (``layout``), or with more nearest neighbours (``EnvConfig.filter_neighbours``; bundles from before it: the
         policy's), of which the policy reads the prefix ``layout.size``."""
-        _, k = neighbour_slots(self.num_agents, self.max_neighbours, int(self.env.get("filter_neighbours", 0)))
+        _, k = neighbour_slots(self.num_agents, self.max_neighbours, self.filter_neighbours)
         return dataclasses.replace(self.layout, num_neighbours=k)
 
     @property

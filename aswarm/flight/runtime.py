@@ -32,6 +32,7 @@ import numpy as np
 
 from aswarm.core.command import limit_change
 from aswarm.core.geometry import gate_crossed, horizontal
+from aswarm.core.layout import observed_neighbours
 from aswarm.core.observation import observe
 from aswarm.flight import cbf, estimator, policy
 from aswarm.flight.bundle import Bundle
@@ -152,9 +153,9 @@ class FlightController:
         self._half_opening = float(env["gate_half_opening"])
         self._goal_radius = float(env["goal_radius"])
         self._collision_radius = float(env["collision_radius"])
-        # The safety filter sees more nearest neighbours than the policy (bundle.filter_layout): the observations
-        # are built with its rows and the policy reads their prefix (run_policy).
-        self._wide_filter = bundle.filter_layout.num_neighbours > bundle.layout.num_neighbours
+        # observe's neighbour rows: the safety filter's where it sees more nearest neighbours than the policy
+        # (bundle.filter_layout), which then reads their prefix (run_policy).
+        self._observed = observed_neighbours(bundle.num_agents, bundle.max_neighbours, bundle.filter_neighbours)
         self._lead: tuple[int, ...] | None = None
 
     # ------------------------------------------------------------------ course
@@ -299,8 +300,7 @@ class FlightController:
         cyl_pos, cyl_vel, cyl_radius, cyl_present, lost_obstacles = self._obstacle_arrays(obstacles)
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
-                      cyl_present, self._collision_radius, self._arena_low, self._arena_high,
-                      self.bundle.filter_layout.num_neighbours if self._wide_filter else self.bundle.max_neighbours)
+                      cyl_present, self._collision_radius, self._arena_low, self._arena_high, self._observed)
         pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles))
 
         u = pol.u
