@@ -17,6 +17,7 @@ from qp_reference import osqp_qp, reference_qp
 from aswarm.agents.cbf_filter import FilterResult, filter_velocity
 from aswarm.core import barriers
 from aswarm.core.barriers import Rows, barrier_rows, cylinder_rows, floor_row, neighbour_rows
+from aswarm.core.layout import CYL, ObsLayout
 from aswarm.core.safety import LEGACY_FIELDS, SafetyFilterConfig, from_manifest, manifest_fields, nest_legacy
 from aswarm.flight import cbf as np_cbf
 
@@ -482,6 +483,78 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
         u_jax = jax.jit(lambda o, c, g, a: filter_from_obs(layout, o, c, g, U_MAX, 0.06, moving, 0.3, 0.05, a).u)(
             jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel))
     np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
+    # With braking: the commands flown now, the reachable box and the braking rows; again the same in both, every
+    # command inside the box, and changed by it.
+    braking = dataclasses.replace(moving, braking=True)
+    applied, rate = rng.uniform(-1.5, 1.5, (2, 3, 3)), (3.0, 0.04)
+    res_np = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, braking, 0.3, 0.05, accel, applied, rate)
+    assert np.all(np.abs(res_np.u - applied) <= 0.12 + 1e-9)
+    assert np.abs(res_np.u - np.clip(cmd, applied - 0.12, applied + 0.12)).max() > 1e-3
+    with jax.enable_x64(True):
+        u_jax = jax.jit(lambda o, c, g, a, now: filter_from_obs(layout, o, c, g, U_MAX, 0.06, braking, 0.3, 0.05, a,
+                                                                now, rate).u)(
+            jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel), jnp.asarray(applied))
+    np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
+
+
+def test_braking_row_hand_derived():
+    """A still cylinder (look-ahead point at the origin), the drone's look-ahead point 0.5 m from its surface
+    (h = 0.5) flying straight at it at s m/s, command limit 3 m/s², dt 0.04 s: B = √(2·3·0.5) − s = √3 − s and the
+    row is n · u ≥ −s + dt (√(3/(2·0.5)) s − γ B). At s = √3 (B = 0) it asks for exactly 3 m/s² of braking
+    (0.12 m/s this step); slower, it lets the drone close in faster than it flies now."""
+    R, r, margin, gamma, dt = 0.2, 0.05, 0.05, 1.0, 0.04
+    d = 0.5 + R + r + margin
+    for s in (np.sqrt(3.0), 1.0):
+        con = barriers.cylinder_braking_rows(jnp.array([d, 0.0, 1.0]), jnp.array([-s, 0.0, 0.0]), jnp.zeros((1, 2)),
+                                             jnp.array([R]), jnp.zeros((1, 2)), jnp.ones(1, bool), gamma,
+                                             accel=jnp.zeros(1), lag=0.3, decel=3.0, dt=dt, drone_radius=r,
+                                             margin=margin)
+        B = np.sqrt(3.0) - s
+        np.testing.assert_allclose(con.h, [0.5], atol=1e-6)
+        np.testing.assert_allclose(con.A, [[1.0, 0.0, 0.0]], atol=1e-6)
+        np.testing.assert_allclose(con.b, [-s + dt * (np.sqrt(3.0) * s - gamma * B)], rtol=1e-5)
+    np.testing.assert_allclose(float(con.b[0]) + 1.0, dt * (np.sqrt(3.0) - gamma * (np.sqrt(3.0) - 1.0)), rtol=1e-5)
+    # Flying past it instead (w ⊥ n, |w| = 1): the turning term |w_⊥|²/d = 1/d lets the drone keep going.
+    past = barriers.cylinder_braking_rows(jnp.array([d, 0.0, 1.0]), jnp.array([0.0, 1.0, 0.0]), jnp.zeros((1, 2)),
+                                          jnp.array([R]), jnp.zeros((1, 2)), jnp.ones(1, bool), gamma,
+                                          accel=jnp.zeros(1), lag=0.3, decel=3.0, dt=dt, drone_radius=r, margin=margin)
+    np.testing.assert_allclose(past.b, [dt * (-1.0 / d - gamma * np.sqrt(3.0))], rtol=1e-5)
+
+
+def test_a_braking_drone_stops_short_of_a_cylinder_in_the_command_limits_double_integrator():
+    """The model the braking rows assume: the look-ahead point moves at the command, which moves at most 3 m/s²
+    (0.12 m/s per 40 ms step, per axis). At 2 m/s, 2 m from a still cylinder's surface, the nominal command keeps
+    flying at it, and the gain is 5/s: the velocity rows let the drone close in at up to γ h, which from h = 0.4 m
+    on asks for more braking than 3 m/s² (γ · 2 m/s = 10 m/s²), so on the reachable box it hits the cylinder; the
+    braking rows start braking in time and the drone stops at the margin (0.05 m, to 3 mm of discretisation)."""
+    R, r, dt, step = 0.2, 0.05, 0.04, 0.12
+    layout = ObsLayout(num_cylinders=1, num_neighbours=0)
+    own, cyl0 = layout.own_slices, layout.own_dim
+    safety = SafetyFilterConfig(margin=0.05, hazard_accel=True, braking=True)
+
+    def fly(cfg):
+        q, now, lowest = np.array([0.0, 0.0]), np.array([2.0, 0.0, 0.0]), np.inf
+        centre = np.array([2.0 + R + r, 0.0])
+        for _ in range(100):
+            obs = np.zeros((1, layout.size))
+            obs[0, own["altitude"]] = 1.0
+            obs[0, own["vel"]] = now  # no look-ahead in this config: q is the point itself
+            obs[0, own["wall_clearance"]] = 50.0
+            rel = centre - q
+            obs[0, cyl0 + CYL.slice("rel_xy").start:cyl0 + CYL.slice("rel_xy").stop] = rel
+            obs[0, cyl0 + CYL.column("clearance")] = np.linalg.norm(rel) - R - r
+            obs[0, cyl0 + CYL.column("present")] = 1.0
+            res = np_cbf.filter_from_obs(layout, obs, np.array([[2.0, 0.0, 0.0]]), np.array([5.0]), 2.0, r, cfg,
+                                         cyl_accel=np.zeros(1), applied=now[None], command_rate=(3.0, dt))
+            now = np.clip(res.u[0], now - step, now + step)
+            q = q + dt * now[:2]
+            lowest = min(lowest, np.linalg.norm(centre - q) - R - r)
+        return lowest, now
+
+    lowest, now = fly(safety)
+    assert lowest > 0.045 and abs(now[0]) < 0.01
+    lowest, _ = fly(dataclasses.replace(safety, braking=False))
+    assert lowest < 0.0
 
 
 def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():

@@ -522,8 +522,8 @@ def test_drone_outside_the_geofence_gets_a_land_request(synthetic):
 def test_nonfinite_command_is_replaced_by_hover(synthetic, monkeypatch):
     real = fc.run_policy
 
-    def broken(bundle, obs, cyl_accel=None):
-        out = real(bundle, obs, cyl_accel)
+    def broken(bundle, obs, cyl_accel=None, applied=None):
+        out = real(bundle, obs, cyl_accel, applied)
         u = out.u.copy()
         u[..., 1, :] = np.nan
         return fc.PolicyOutput(out.nominal, u, out.gain, out.intervened, out.converged)
@@ -554,7 +554,7 @@ def test_old_poses_pass_gates_when_the_drone_does_not_a_step_late(synthetic, mon
     # Drone 0 flies through gate 0 (centre (6, 0, 1), passage +y) on a first-order lag behind the runtime's commands;
     # the runtime sees poses one control step (40 ms) old. With the model estimate it switches to the next gate in
     # the step the drone crosses, as the simulator does; the line fit switches a step late, a drone already through.
-    def straight(bundle, obs, cyl_accel=None):
+    def straight(bundle, obs, cyl_accel=None, applied=None):
         u = np.zeros(obs.shape[:-1] + (3,))
         u[..., 0, 1] = 1.0
         off = np.zeros(obs.shape[:-1], bool)
@@ -591,7 +591,7 @@ def test_pose_noise_at_a_gate_plane_counts_no_pass_until_the_drone_comes_from_be
     # the plane while its poses flicker ±3 mm across it: the simulator counts nothing there, nor may the runtime (it
     # did: a ghost sent on to the next gate). Once the drone has been 2 cm before the plane, passing 1 cm beyond it
     # through the opening counts.
-    monkeypatch.setattr(fc, "run_policy", lambda bundle, obs, cyl_accel=None: fc.PolicyOutput(
+    monkeypatch.setattr(fc, "run_policy", lambda bundle, obs, cyl_accel=None, applied=None: fc.PolicyOutput(
         nominal=np.zeros(obs.shape[:-1] + (3,)), u=np.zeros(obs.shape[:-1] + (3,)), gain=np.ones(obs.shape[:-1]),
         intervened=np.zeros(obs.shape[:-1], bool), converged=np.ones(obs.shape[:-1], bool)))
     ctl = fc.FlightController(synthetic, 4, estimation=estimator.EstimatorConfig(velocity="window"))

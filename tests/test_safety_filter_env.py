@@ -183,11 +183,12 @@ def test_largest_default_gain_is_safe_at_full_speed():
     assert not bool(s.tracker.collided[0])
 
 
-def _fitted_filter(env, safety: SafetyFilterConfig):
+def _fitted_filter(env, safety: SafetyFilterConfig, gain: float | None = None):
     c = env.config
-    return jax.jit(lambda o, u, a: cbf_filter.filter_from_obs(
-        env.obs_layout, o, u, jnp.full(o.shape[:-1], safety.gain_max), c.max_speed, c.cf.collision_radius, safety,
-        c.gate_half_opening, c.gate_bar, a))
+    gain = safety.gain_max if gain is None else gain
+    return jax.jit(lambda o, u, a, now: cbf_filter.filter_from_obs(
+        env.obs_layout, o, u, jnp.full(o.shape[:-1], gain), c.max_speed, c.cf.collision_radius, safety,
+        c.gate_half_opening, c.gate_bar, a, now, (c.command_accel_limit, 1.0 / c.policy_freq)))
 
 
 def _fly(env, state, command, filt, seconds):
@@ -196,7 +197,8 @@ def _fly(env, state, command, filt, seconds):
     step = jax.jit(env.step)
     lowest = np.inf
     for _ in range(round(seconds * env.config.policy_freq)):
-        state = step(state, command if filt is None else filt(state.obs, command, env.cylinder_accel(state)).u)
+        now = env.applied_command(state)
+        state = step(state, command if filt is None else filt(state.obs, command, env.cylinder_accel(state), now).u)
         lowest = min(lowest, float(env.obs_layout.split(state.obs)[1][0, 0, 2]))
         if state.done:
             break
@@ -249,4 +251,30 @@ def test_a_drone_flying_at_2_m_s_at_a_cylinder_stops_short_of_it(use_filter):
         assert float(jnp.linalg.norm(end.obs[0, env.obs_layout.own_slices["vel"]])) < 0.2  # stopped there
     else:
         end, _ = _fly(env, s, cmd, None, seconds=2.0)
+        assert int(end.tracker.collision_kind[0]) == col.OBSTACLE
+
+
+@pytest.mark.parametrize("braking", [True, False])
+def test_braking_rows_stop_the_firmware_drone_where_a_high_gain_velocity_row_does_not(braking):
+    """Relative degree 2 on the simulated drone (firmware PID, rotor lag, its 3 m/s² command limit): at 2 m/s, 1.5 m
+    from a cylinder's surface, commanded on at it with a gain of 10/s. The velocity rows at the look-ahead point let
+    it close in at up to 10 h m/s, more than the command limit can take back, and it hits the cylinder; the braking
+    rows brake in time and keep it 0.13 m off."""
+    env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
+    c = env.config
+    assert c.command_accel_limit == 3.0
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    p = np.asarray(s.layout.start_pos[0])
+    s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5 + c.obstacle_radius
+                                                                  + c.cf.collision_radius, p[1]]])))
+    drones = DroneState(pos=jnp.asarray([p]), quat=jnp.array([[1.0, 0.0, 0.0, 0.0]]),
+                        vel=jnp.array([[2.0, 0.0, 0.0]]), ang_vel=jnp.zeros((1, 3)))
+    cmd = jnp.array([[2.0, 0.0, 0.0]])
+    s = s.replace(data=set_drone_state(s.data, drones), onboard=s.onboard.replace(commands=jnp.stack([cmd, cmd])),
+                  obs=jax.jit(env._observe)(drones, s.layout, s.tracker, jnp.zeros(())))
+    safety = dataclasses.replace(_fitted(env), braking=braking)
+    end, lowest = _fly(env, s, cmd, _fitted_filter(env, safety, gain=10.0), seconds=2.0)
+    if braking:
+        assert not bool(end.tracker.collided[0]) and lowest > 0.1
+    else:
         assert int(end.tracker.collision_kind[0]) == col.OBSTACLE

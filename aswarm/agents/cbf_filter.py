@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from aswarm.core import barriers
+from aswarm.core import barriers, command
 from aswarm.core.safety import SafetyFilterConfig
 
 _DIM = 4  # decision variables: the velocity (3) and the scaled shared slack
@@ -180,7 +180,7 @@ def _active_set_loop(x0: list, cols: list, h: jax.Array, valid: jax.Array, max_i
 
 def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Array,
                     u_max: float | jax.Array, *, rho: float = 1e6, max_iter: int = 16,
-                    tol: float = 1e-6, slack_weight=None) -> FilterResult:
+                    tol: float = 1e-6, slack_weight=None, box: tuple | None = None) -> FilterResult:
     """Closest velocity to ``u_nom`` satisfying ``A u ≥ b`` (rows where ``mask``) and ``|u_k| ≤ u_max``.
 
     u_nom [3]; A [m, 3]; b [m]; mask [m] bool; u_max scalar or [3]. Rows are normalised to unit
@@ -203,6 +203,9 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     and 16 none. An unfinished problem returns its last iterate clipped to the box, with
     ``converged`` false. Gradients flow through the final active set (exact where it is locally
     constant, i.e. the usual QP sensitivities); the discrete search is not differentiated.
+
+    ``box`` = (lo, hi) [3] replaces the box ±u_max by lo ≤ u ≤ hi (the commands a drone can reach this step, see
+    :func:`filter_from_obs`); it must hold a point (lo ≤ hi) for the QP to stay feasible.
     """
     dt = jnp.result_type(u_nom, A, b, jnp.float32)
     u_nom, A, b = u_nom.astype(dt), A.astype(dt), b.astype(dt)
@@ -211,6 +214,7 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     valid_rows = mask & (nrm > barriers.EPS)
     b_hat = jnp.where(valid_rows, b / jnp.where(valid_rows, nrm, 1.0), 0.0)
     u_max = jnp.broadcast_to(jnp.asarray(u_max, dt), (3,))
+    lo, hi = (-u_max, u_max) if box is None else (jnp.asarray(box[0], dt), jnp.asarray(box[1], dt))
     # Decision x = (u, √ρ s), so the cost is ½||x − x0||²; rows G x ≥ h are the m CBF rows
     # (slack coefficient 1/√ρ), then the box as u_k ≥ −u_max and −u_k ≥ −u_max. G is kept as
     # its 4 columns (structure of arrays, see above).
@@ -220,7 +224,7 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
         cols.append(jnp.concatenate([jnp.full((m,), 1.0 / jnp.sqrt(rho), dt), jnp.zeros(6, dt)]))
     else:
         cols.append(jnp.concatenate([jnp.asarray(slack_weight, dt) / jnp.sqrt(rho), jnp.zeros(6, dt)]))
-    h = jnp.concatenate([b_hat, -u_max, -u_max])
+    h = jnp.concatenate([b_hat, lo, -hi])
     valid = jnp.concatenate([valid_rows, jnp.ones(6, bool)])
     x0 = [u_nom[0], u_nom[1], u_nom[2], jnp.zeros((), dt)]
 
@@ -252,7 +256,7 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     x = [jnp.where(pending, xl, xg + sg(xv - xg)) for xl, xg, xv in zip(x_loop, x_grad, x_val)]
     # Out of budget: the dual iterate is optimal for a subset of the rows but may leave the box;
     # clipping keeps the command flyable (reported through ``converged``).
-    u = jnp.where(safe, u_nom, jnp.clip(jnp.stack(x[:3]), -u_max, u_max))
+    u = jnp.where(safe, u_nom, jnp.clip(jnp.stack(x[:3]), lo, hi))
     slack = jnp.where(safe, 0.0, jnp.maximum(x[3] / jnp.sqrt(rho), 0.0))
     converged = safe | (~pending & ~jnp.any(valid & (row_gaps(sg(x)) < -10 * tol)))
     diff = u - u_nom
@@ -268,7 +272,8 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
 # ------------------------------------------------------- from observations
 def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_max: float, drone_radius: float,
                     safety: SafetyFilterConfig, gate_half_opening: float = 0.0, gate_bar: float = 0.0,
-                    cyl_accel: jax.Array | None = None) -> FilterResult:
+                    cyl_accel: jax.Array | None = None, applied: jax.Array | None = None,
+                    command_rate: tuple[float, float] | None = None) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]).
 
     The rows are :func:`aswarm.core.barriers.obs_rows` (``[cylinders M | neighbours K | floor 1 | walls 5 |
@@ -276,14 +281,25 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     observations. ``gain`` [..., n] is one class-K gain per drone, applied to all its rows; margin,
     neighbour share, floor height and the QP's settings come from ``safety``. ``cyl_accel`` [..., M] (per world,
     m/s²): the cylinders' acceleration bounds, used where ``safety.hazard_accel`` (see ``obs_rows``).
+
+    ``applied`` [..., n, 3] the commands the drones fly now and ``command_rate`` = (command acceleration limit m/s²,
+    control period s), where ``safety.braking``: the QP chooses among the commands the limit lets the drone reach
+    this step (``cmd`` first moved into that box, as the drone would take it), and the cylinders' rows are the
+    braking barriers of ``obs_rows``.
     """
-    def one(o, g, u, a):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
+    def one(o, g, u, a, now):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
+        braking, box = None, None
+        if now is not None:
+            box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
+            u = jnp.clip(u, *box)
+            braking = (now, command_rate[0], command_rate[1])
         A, b, mask, _ = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
                                           gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                                           floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                                          lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a)
+                                          lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a,
+                                          braking=braking)
         return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol,
-                               slack_weight=weight)
+                               slack_weight=weight, box=box)
 
     # (static choices: a filter without them traces as it did before they existed)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
@@ -291,7 +307,9 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
         accel = jnp.broadcast_to(jnp.asarray(cyl_accel)[..., None, :], obs.shape[:-1] + (layout.num_cylinders,))
     else:
         accel = None
+    if not (safety.braking and command_rate and command_rate[0] > 0):
+        applied = None
     fn = one
     for _ in range(obs.ndim - 1):
         fn = jax.vmap(fn)
-    return fn(obs, gain, cmd, accel)
+    return fn(obs, gain, cmd, accel, applied)

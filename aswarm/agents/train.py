@@ -135,13 +135,14 @@ class Agent:
         return self.cbf.apply(params["cbf"], self.normalize(obs_norm, obs), hazard_mask(self.env.obs_layout, obs))
 
     def filter_commands(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array,
-                        cyl_accel: jax.Array | None = None,
-                        filter_obs: jax.Array | None = None) -> cbf_filter.FilterResult:
+                        cyl_accel: jax.Array | None = None, filter_obs: jax.Array | None = None,
+                        applied: jax.Array | None = None) -> cbf_filter.FilterResult:
         """The CBF safety filter's whole result on commands [.., n, 3] (its slack, convergence, active rows);
         a method without a filter passes the commands through, with no slack, no row and nothing changed.
         ``cyl_accel`` [.., M]: the cylinders' acceleration bounds (``SwarmEnv.cylinder_accel``); ``filter_obs``: the
         rows' observation where the filter takes more neighbours than the policy (``State.filter_obs``; None:
-        ``obs``). The gain comes from the policy's own observation either way."""
+        ``obs``). The gain comes from the policy's own observation either way. ``applied`` [.., n, 3]: the commands
+        the drones fly now (``SwarmEnv.applied_command``), for a filter with ``braking``."""
         if not self.config.uses_filter:
             zeros = jnp.zeros(cmd.shape[:-1])
             return cbf_filter.FilterResult(u=cmd, slack=zeros, intervened=zeros.astype(bool), correction_norm=zeros,
@@ -155,23 +156,24 @@ class Agent:
         layout, rows_obs = (self.env.obs_layout, obs) if filter_obs is None else (self.env.filter_layout, filter_obs)
         return cbf_filter.filter_from_obs(layout, rows_obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
                                           self.config.safety_filter, ec.gate_half_opening, ec.gate_bar,
-                                          cyl_accel)
+                                          cyl_accel, applied, (ec.command_accel_limit, 1.0 / ec.policy_freq))
 
     def safe_command(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array,
-                     cyl_accel: jax.Array | None = None, filter_obs: jax.Array | None = None):
+                     cyl_accel: jax.Array | None = None, filter_obs: jax.Array | None = None,
+                     applied: jax.Array | None = None):
         """Apply the CBF safety filter (where the method has one) to commands [.., n, 3].
 
         Returns (filtered commands, intervened [.., n], correction norm [.., n] m/s: the training's reward
         charges it); :meth:`filter_commands` has the rest of the filter's result (slack, convergence).
         """
-        res = self.filter_commands(params, obs_norm, obs, cmd, cyl_accel, filter_obs)
+        res = self.filter_commands(params, obs_norm, obs, cmd, cyl_accel, filter_obs, applied)
         return res.u, res.intervened, res.correction_norm
 
     def act(self, params: dict, obs_norm, obs: jax.Array, cyl_accel: jax.Array | None = None,
-            filter_obs: jax.Array | None = None) -> jax.Array:
+            filter_obs: jax.Array | None = None, applied: jax.Array | None = None) -> jax.Array:
         """Deterministic, filtered commands: what evaluation and export run."""
         cmd, _, _ = self.policy(params, obs_norm, obs, None)
-        return self.safe_command(params, obs_norm, obs, cmd, cyl_accel, filter_obs)[0]
+        return self.safe_command(params, obs_norm, obs, cmd, cyl_accel, filter_obs, applied)[0]
 
 
 def make_env(config: TrainConfig) -> envs.SwarmEnv:
@@ -270,7 +272,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
             obs = env_state.obs
             cmd, raw, logp = ag.policy(ts.params, ts.obs_norm, obs, k)
             safe, intervened, corr = ag.safe_command(ts.params, ts.obs_norm, obs, cmd, env.cylinder_accel(env_state),
-                                                     env_state.filter_obs)
+                                                     env_state.filter_obs, env.applied_command(env_state))
             nxt = wenv.step(env_state, safe)
             done = nxt.done
             episode = {k_: jnp.sum(v * done) for k_, v in nxt.metrics.items()}

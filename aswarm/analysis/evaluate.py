@@ -82,7 +82,8 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         def body(carry, _):
             s, rec, ended, interventions, infeasible, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
-            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs)
+            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
+                                        env.applied_command(s))
             s = step(s, res.u)
             first = (s.done > 0) & ~ended
             rec = jax.tree.map(lambda r, m: jnp.where(first, m, r), rec, s.metrics)

@@ -113,7 +113,8 @@ def record_episode(agent, params, obs_norm, key: jax.Array, env=None) -> Episode
 
         def body(s, _):
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
-            safe, _, _ = agent.safe_command(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs)
+            safe, _, _ = agent.safe_command(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
+                                            env.applied_command(s))
             nxt = env.step(s, safe)
             # Once done the state stays put: the final carry is the state the episode ended in.
             s = jax.tree.map(lambda old, new: jnp.where(s.done > 0, old, new), s, nxt)

@@ -18,6 +18,10 @@ namespace and build arrays without in-place writes, so the simulator traces them
 and the flight runtime runs them in a process without JAX. Rows from observations
 (:func:`obs_rows`) are laid out ``[cylinders M | neighbours K | floor 1 | walls 5 | gate frame 5 |
 previous gate 5]``.
+
+A drone whose command has an acceleration limit cannot take back a closing speed at once: for the
+cylinders, :func:`cylinder_braking_rows` replaces the velocity condition by one on a braking-distance
+barrier of relative degree 2 (``SafetyFilterConfig.braking``).
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from aswarm.core.layout import CYL, NBR, OWN
 EPS = 1e-9
 # Inward normals of the arena's walls, in the order of the observation's wall_clearance field.
 WALL_NORMALS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+# m: the gap below which cylinder_braking_rows holds √(a/2h) at its value there (it grows without bound at contact).
+BRAKING_MIN_GAP = 0.02
 # Rows after the point hazards in obs_rows: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
 FIXED_ROWS = 1 + 5 + 10
 # An observed gate direction of passage is a unit vector, an absent gate's is 0: tested against this |n|².
@@ -112,6 +118,45 @@ def cylinder_rows(pos, center, radius, vel, present, gamma, *, drone_radius: flo
     return Rows(A, b, present, h)
 
 
+def cylinder_braking_rows(pos, cmd, center, radius, vel, present, gamma, *, accel, lag: float, decel: float,
+                          dt: float, drone_radius: float, margin: float = 0.0) -> Rows:
+    """Rows for vertical cylinders with relative degree 2: a braking-distance barrier on a drone whose command
+    cannot change faster than ``decel`` (m/s², ``EnvConfig.command_accel_limit``).
+
+    pos [..., 3] the drone's look-ahead point q, cmd [..., 3] the command it flies now (q̇ = cmd for a first-order
+    lag); center, vel [..., M, 2] the cylinders' look-ahead points and velocities, accel [..., M] their acceleration
+    bounds (0 for static ones), radius, present [..., M]; gamma [..., M] or broadcastable (1/s). With n the unit
+    normal from the cylinder, h = ||q − c|| − (R + r_d + margin) and the worst-case opening speed
+    w_n = n · (cmd − v_c) − τ accel (the cylinder's look-ahead point moves at v_c + τ a_c), the barrier is
+
+        B = √(2 decel h) + w_n ≥ 0:
+
+    closing at −w_n, braking at ``decel`` stops short of the cylinder as it moves now. With the command moving to u
+    over one control step (u̇ ≈ (u − cmd)/dt), the cylinder's acceleration at its bound against the drone over that
+    step, and Ḃ ≥ −γ B, the row is linear in u:
+
+        n · u ≥ n · cmd + dt (accel − |w_⊥|²/d − √(decel/2h) w_n − γ B),
+
+    |w_⊥|²/d the turning of n as the drone passes (it helps). At B = 0 and a still cylinder it asks for exactly
+    ``decel`` of braking, which the command limit allows. It holds against the cylinder's acceleration step by step,
+    not over the whole braking: B with decel − accel in place of decel would, and on the dynamic preset it left the
+    drones almost no way past (README). h is floored at BRAKING_MIN_GAP in √(decel/2h).
+    """
+    xp = geometry.namespace(pos, center)
+    dist, n_xy = unit(pos[..., None, :2] - center)
+    h = dist - (radius + drone_radius + margin)
+    w = cmd[..., None, :2] - vel
+    n_w = xp.sum(n_xy * w, axis=-1)
+    w_n = n_w - lag * accel
+    perp_sq = xp.maximum(xp.sum(w * w, axis=-1) - n_w * n_w, 0.0)
+    B = xp.sqrt(2.0 * decel * xp.maximum(h, 0.0)) + w_n
+    rate = (accel - perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
+            - xp.sqrt(decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * w_n)
+    b = xp.sum(n_xy * cmd[..., None, :2], axis=-1) + dt * (rate - gamma * B)
+    A = xp.concat([n_xy, xp.zeros_like(n_xy[..., :1])], axis=-1)
+    return Rows(A, b, present, h)
+
+
 def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
                    share=0.5) -> Rows:
     """Rows for the other drones (spheres).
@@ -187,7 +232,7 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
                    drone_radius: float, margin: float, floor_z: float, neighbour_share,
-                   cyl_motion: tuple | None = None) -> list[Rows]:
+                   cyl_motion: tuple | None = None, cyl_braking: tuple | None = None) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]."""
     xp = geometry.namespace(pos)
     M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
@@ -203,9 +248,16 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         # the same bits).
         gamma = xp.broadcast_to(gamma, pos.shape[:-1] + (M + K + 1,))
         g_cyl, g_nbr, g_floor = gamma[..., :M], gamma[..., M:M + K], gamma[..., M + K:]
+    if cyl_braking is None:
+        cyl = cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
+                            margin=margin, motion=cyl_motion)
+    else:
+        cmd, decel, dt, lag = cyl_braking
+        accel = xp.zeros_like(cyl_radius) if cyl_motion is None else cyl_motion[0]
+        cyl = cylinder_braking_rows(pos, cmd, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, accel=accel,
+                                    lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=margin)
     return [
-        cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
-                      margin=margin, motion=cyl_motion),
+        cyl,
         neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
                        share=neighbour_share),
         floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin),
@@ -214,7 +266,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
-             lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None) -> Rows:
+             lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -238,6 +290,10 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     cylinder's acceleration, for scenes where cylinders move. The observation holds each one's velocity but not its
     acceleration, so its row holds against the worst within the bound (:func:`cylinder_rows`' ``motion``; a static
     one, bound 0, keeps its row; nothing changes without a look-ahead, where the command acts at once).
+
+    ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
+    (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
+    2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -279,7 +335,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     motion = None if cyl_accel is None else (xp.asarray(cyl_accel, dtype=obs.dtype), lookahead[0])
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
-                            neighbour_share=neighbour_share, cyl_motion=motion)
+                            neighbour_share=neighbour_share, cyl_motion=motion,
+                            cyl_braking=None if braking is None else (*braking, lookahead[0]))
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
     walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)

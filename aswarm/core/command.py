@@ -15,6 +15,13 @@ def limit_change(cmd, previous, step):
     return previous + xp.clip(cmd - previous, -step, step)
 
 
+def reachable(previous, step, limit):
+    """(lo, hi): the commands :func:`limit_change` lets through from ``previous`` [..., 3] (``step`` m/s per axis),
+    within the command bound ±``limit``: the box a safety filter that knows the limit chooses in."""
+    xp = namespace(previous)
+    return xp.maximum(previous - step, -limit), xp.minimum(previous + step, limit)
+
+
 # A drone on the firmware's Mellinger controller tracks full-state setpoints, not velocities: its velocity
 # command reaches it as a setpoint that moves with the command (the same on the simulated drone and in flight).
 def setpoint_position(reference, cmd, dt):

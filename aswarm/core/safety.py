@@ -45,6 +45,11 @@ class SafetyFilterConfig:
     # beside the observation), not only their present velocity (aswarm.core.barriers.obs_rows). Runs and bundles
     # from before read back without it.
     hazard_accel: bool = True
+    # Relative degree 2 where the drone's command has an acceleration limit (EnvConfig.command_accel_limit): the QP
+    # chooses among the commands the drone can reach this control step, and each cylinder's row is a braking-distance
+    # barrier on the command the drone flies now (aswarm.core.barriers.cylinder_braking_rows). Runs and bundles
+    # from before read back without it.
+    braking: bool = False
     # When no command satisfies every row, the floor, walls, ceiling and gate frames take this share of the shared
     # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
     # runs and bundles from before it do.
@@ -96,7 +101,7 @@ class SafetyFilterConfig:
 
 
 # The config's true/false fields; every other field is a number.
-_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel")
+_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -139,7 +144,8 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     (bundles from before this config have them too), so a missing one is an error, not a default."""
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
-              "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, **safety}
+              "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
+              **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

@@ -370,6 +370,11 @@ class SwarmEnv:
             return None
         return geo.cylinder_accel_bound(state.layout.cyl_amplitude, state.layout.cyl_omega)
 
+    def applied_command(self, state: State) -> jax.Array:
+        """[..., n, 3] the velocity commands the drones fly now (after the command acceleration limit): where the
+        next command starts from. A batch of states too."""
+        return state.onboard.commands[..., 0, :, :]
+
     def flying(self, state: State) -> jax.Array:
         """[..., n] bool: drones not finished and released (staggered track starts); the others hover and
         earn neither reward nor cost. Works on a batch of states too."""

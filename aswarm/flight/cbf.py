@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from aswarm.core import barriers
+from aswarm.core import barriers, command
 from aswarm.core.layout import ObsLayout
 from aswarm.core.safety import SafetyFilterConfig
 
@@ -356,8 +356,9 @@ def _qp_template(P: int, m: int, u_max: tuple, rho: float) -> tuple[np.ndarray, 
 
 
 def _solve(u_nom: np.ndarray, G: np.ndarray, h: np.ndarray, valid: np.ndarray, u_max: tuple, rho: float,
-           max_iter: int, tol: float) -> FilterResult:
-    """The QP of :func:`_qp_rows`: u_nom [P, 3]; G [P, C, 4]; h, valid [P, C]; u_max 3 floats."""
+           max_iter: int, tol: float, box: tuple | None = None) -> FilterResult:
+    """The QP of :func:`_qp_rows`: u_nom [P, 3]; G [P, C, 4]; h, valid [P, C]; u_max 3 floats; box (lo, hi)
+    [P, 3] in place of ±u_max (the box rows of ``h`` already hold it)."""
     P = u_nom.shape[0]
     x0 = np.zeros((P, 4))
     x0[:, :3] = u_nom
@@ -378,8 +379,12 @@ def _solve(u_nom: np.ndarray, G: np.ndarray, h: np.ndarray, valid: np.ndarray, u
     else:
         x, pending = _active_set(G, h, valid, x0, max_iter, tol)
     # Out of budget: the dual iterate can leave the box; clipping keeps the command flyable.
-    lim = u_max[0] if u_max[0] == u_max[1] == u_max[2] else np.array(u_max)
-    u_bad = np.minimum(np.maximum(x[:, :3], -lim), lim)
+    if box is None:
+        lim = u_max[0] if u_max[0] == u_max[1] == u_max[2] else np.array(u_max)
+        u_bad = np.minimum(np.maximum(x[:, :3], -lim), lim)
+    else:
+        lo, hi = (b[bad] for b in box) if some else box
+        u_bad = np.minimum(np.maximum(x[:, :3], lo), hi)
     slack_bad = np.maximum(x[:, 3] / math.sqrt(rho), 0.0)
     gaps = (G @ x[:, :, None])[:, :, 0]
     gaps -= h
@@ -405,13 +410,14 @@ _BOX = np.concatenate([_BOX, np.zeros((6, 1))], 1)  # the box rows of G (no slac
 
 
 def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.ndarray, u_max, *, rho: float = 1e6,
-                    max_iter: int = 16, tol: float = 1e-6, slack_weight: np.ndarray | None = None) -> FilterResult:
+                    max_iter: int = 16, tol: float = 1e-6, slack_weight: np.ndarray | None = None,
+                    box: tuple | None = None) -> FilterResult:
     """Closest velocity to ``u_nom`` [..., 3] with ``A u ≥ b`` (rows where ``mask``) and ``|u_k| ≤ u_max``.
 
     A [..., m, 3]; b, mask [..., m]; u_max scalar or [3]. Rows are normalised to unit ‖a_j‖ (rows with
     a_j ≈ 0 are ignored). A command that satisfies every row and the box (to ``tol``) is returned
     unchanged; only the other problems go through the active-set steps. ``slack_weight`` [m]: each row's share
-    of the shared slack (None: 1), as in the JAX filter.
+    of the shared slack (None: 1), as in the JAX filter. ``box`` = (lo, hi) [..., 3] in place of ±u_max, as there.
     """
     u_nom = np.asarray(u_nom, np.float64)
     lead, m = u_nom.shape[:-1], A.shape[-2]
@@ -428,7 +434,10 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
         G[:, :m, 3] = np.asarray(slack_weight, np.float64) / np.sqrt(rho)
     h[:, :m] = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
     valid[:, :m] = valid_rows
-    return _reshape(_solve(u_nom.reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol), lead)
+    if box is not None:
+        box = tuple(np.broadcast_to(np.asarray(x, np.float64), lead + (3,)).reshape(P, 3) for x in box)
+        h[:, m:m + 3], h[:, m + 3:] = box[0], -box[1]
+    return _reshape(_solve(u_nom.reshape(P, 3), G, h, valid, u_max, rho, max_iter, tol, box), lead)
 
 
 def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
@@ -440,22 +449,31 @@ def _reshape(res: FilterResult, lead: tuple[int, ...]) -> FilterResult:
 # ------------------------------------------------------------------ from observations
 def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray, u_max: float,
                     drone_radius: float, safety: SafetyFilterConfig, gate_half_opening: float = 0.0,
-                    gate_bar: float = 0.0, cyl_accel: np.ndarray | None = None) -> FilterResult:
+                    gate_bar: float = 0.0, cyl_accel: np.ndarray | None = None, applied: np.ndarray | None = None,
+                    command_rate: tuple[float, float] | None = None) -> FilterResult:
     """Filter commands [..., n, 3] using only what each drone observes (raw obs [..., n, D]); gain [..., n].
 
     As ``cbf_filter.filter_from_obs``: the rows of :func:`aswarm.core.barriers.obs_rows` (one gain per
     drone for all its rows; gate rows present when ``gate_bar > 0`` and the observation has a gate),
     margin, neighbour share, floor height and the QP's settings from ``safety``; ``cyl_accel`` [..., M] (per swarm,
-    m/s²) the cylinders' acceleration bounds, used where ``safety.hazard_accel``.
+    m/s²) the cylinders' acceleration bounds, used where ``safety.hazard_accel``; ``applied`` [..., n, 3] the commands
+    the drones fly now and ``command_rate`` (command acceleration limit, control period), used where
+    ``safety.braking``: the reachable box and the braking rows, as there.
     """
     obs = np.asarray(obs, np.float64)
+    braking = box = None
+    if safety.braking and applied is not None and command_rate and command_rate[0] > 0:
+        now = np.asarray(applied, np.float64)
+        box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
+        cmd = np.minimum(np.maximum(cmd, box[0]), box[1])
+        braking = (now, float(command_rate[0]), float(command_rate[1]))
     accel = None
     if cyl_accel is not None and safety.hazard_accel:
         accel = np.asarray(cyl_accel, np.float64)[..., None, :]
     rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
                              margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                              floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel)
+                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
     return filter_velocity(cmd, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
-                           tol=safety.tol, slack_weight=weight)
+                           tol=safety.tol, slack_weight=weight, box=box)

@@ -301,7 +301,7 @@ class FlightController:
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
                       cyl_present, self._collision_radius, self._arena_low, self._arena_high, self._observed)
-        pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles))
+        pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles), self._sent.u[-1])
 
         u = pol.u
         nonfinite = ~np.isfinite(u).all(-1)
@@ -414,12 +414,13 @@ class FlightController:
 
 
 def filter_commands(bundle: Bundle, obs: np.ndarray, cmd: np.ndarray, gain: np.ndarray,
-                    cyl_accel: np.ndarray | None = None) -> cbf.FilterResult:
+                    cyl_accel: np.ndarray | None = None, applied: np.ndarray | None = None) -> cbf.FilterResult:
     """The bundle's safety filter on raw observations [..., n, D] (``bundle.filter_layout``) and commands
-    [..., n, 3]; cyl_accel [..., M]."""
+    [..., n, 3]; cyl_accel [..., M]; applied [..., n, 3] the commands sent last (for a filter with ``braking``)."""
     sf = bundle.safety_filter
     return cbf.filter_from_obs(bundle.filter_layout, obs, cmd, gain, bundle.max_speed, float(sf["drone_radius"]),
-                               bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]), cyl_accel)
+                               bundle.safety, float(sf["gate_half_opening"]), float(sf["gate_bar"]), cyl_accel,
+                               applied, (bundle.command_accel_limit, 1.0 / bundle.rate_hz))
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -442,9 +443,11 @@ class PolicyOutput:
     converged: np.ndarray  # [..., n] bool
 
 
-def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None) -> PolicyOutput:
+def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None,
+               applied: np.ndarray | None = None) -> PolicyOutput:
     """Normalizer, actor, gain and filter on raw observations [..., n, D]: what ``Agent.act`` computes in JAX
-    (``cyl_accel`` [..., M]: the cylinders' acceleration bounds, m/s²). The observations are in
+    (``cyl_accel`` [..., M]: the cylinders' acceleration bounds, m/s²; ``applied`` [..., n, 3]: the commands sent
+    last, which a filter with ``braking`` starts from). The observations are in
     ``bundle.filter_layout``: the policy's own, or with the filter's extra nearest neighbours after the policy's
     (``EnvConfig.filter_neighbours``), of which the networks read the prefix."""
     sf, w = bundle.safety_filter, bundle.weights
@@ -464,10 +467,11 @@ def run_policy(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = N
     if not sf["enabled"]:
         off = np.zeros(obs.shape[:-1], bool)
         return PolicyOutput(nominal=cmd, u=cmd, gain=gain, intervened=off, converged=~off)
-    res = filter_commands(bundle, wide, cmd, gain, cyl_accel)
+    res = filter_commands(bundle, wide, cmd, gain, cyl_accel, applied)
     return PolicyOutput(nominal=cmd, u=res.u, gain=gain, intervened=res.intervened, converged=res.converged)
 
 
-def act(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None) -> np.ndarray:
+def act(bundle: Bundle, obs: np.ndarray, cyl_accel: np.ndarray | None = None,
+        applied: np.ndarray | None = None) -> np.ndarray:
     """Deterministic, filtered commands [..., n, 3] from raw observations (``Agent.act``)."""
-    return run_policy(bundle, obs, cyl_accel).u
+    return run_policy(bundle, obs, cyl_accel, applied).u
