@@ -307,7 +307,7 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
         accel = jnp.broadcast_to(jnp.asarray(cyl_accel)[..., None, :], obs.shape[:-1] + (layout.num_cylinders,))
     else:
         accel = None
-    if not (safety.braking and command_rate and command_rate[0] > 0):
+    if not safety.brakes(command_rate):
         applied = None
     fn = one
     for _ in range(obs.ndim - 1):

@@ -86,6 +86,11 @@ class SafetyFilterConfig:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
 
 
+    def brakes(self, command_rate: tuple[float, float] | None) -> bool:
+        """Whether the filter takes the braking rows and the reachable box for a drone whose command changes at most
+        ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` on and a limit to brake at (none: no)."""
+        return bool(self.braking and command_rate and command_rate[0] > 0)
+
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
         """The filter for a drone whose velocity reaches 63 % of a step in ``lag_xy`` s horizontally and ``lag_z``
         vertically: gains scaled by TUNED_LAG / lag_xy where the drone is slower than the one they were tuned on,

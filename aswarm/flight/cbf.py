@@ -462,7 +462,7 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     """
     obs = np.asarray(obs, np.float64)
     braking = box = None
-    if safety.braking and applied is not None and command_rate and command_rate[0] > 0:
+    if applied is not None and safety.brakes(command_rate):
         now = np.asarray(applied, np.float64)
         box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
         cmd = np.minimum(np.maximum(cmd, box[0]), box[1])
