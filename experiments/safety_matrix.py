@@ -202,10 +202,23 @@ def newest_step(run: str) -> int | None:
     return max(steps, default=None)
 
 
+def policy_filter(run: str) -> dict | None:
+    """The safety filter a run's config stores (its ``train.safety_filter``, as written; None where it has none): a
+    policy whose filter settings changed flies other episodes than its cached cells (session 14 changed the shipped
+    race policy's ``static_slack``)."""
+    from aswarm.analysis.evaluate import run_folder
+
+    try:
+        return json.loads((run_folder(run) / "config.json").read_text())["train"].get("safety_filter")
+    except (OSError, json.JSONDecodeError, KeyError, AttributeError):
+        return None
+
+
 def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int) -> dict:
     """What a cached cell must match to be reused (JSON round-tripped, as it is read back)."""
     key = {"cell": cell.name, "mode": mode, "scenario": cell.scenario, "env_overrides": list(cell.overrides),
-           "episodes": episodes, "seed": seed, "policy": run, "policy_step": newest_step(run)}
+           "episodes": episodes, "seed": seed, "policy": run, "policy_step": newest_step(run),
+           "policy_filter": policy_filter(run)}
     if mode == "sitl":
         key.update(noise=SITL_NOISE_M, latency_ms=SITL_LATENCY_MS)
     return json.loads(json.dumps(key))

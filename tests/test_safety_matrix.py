@@ -82,6 +82,19 @@ def test_cached_cell_is_recomputed_when_its_key_changes(tmp_path):
     assert mod.cached(path, mod.cell_key(cell, "sim", "pretrained", 8, 2)) is None  # another seed
     assert mod.cached(path, mod.cell_key(cell, "sim", "pretrained", 16, 1)) is None  # other episodes
     assert mod.cached(path, mod.cell_key(cell, "sim", str(tmp_path), 8, 1)) is None  # another policy
+    # The same policy with other filter settings in its config (its checkpoints as they are): recomputed.
+    from aswarm.analysis import evaluate
+
+    config = json.loads((evaluate.PRETRAINED / "config.json").read_text())
+    runs = {}
+    for slack in (0.1, 1.0):
+        config["train"]["safety_filter"]["static_slack"] = slack
+        runs[slack] = tmp_path / f"slack{slack}"
+        runs[slack].mkdir()
+        (runs[slack] / "config.json").write_text(json.dumps(config))
+    mod.write_atomic(path, json.dumps({"key": mod.cell_key(cell, "sim", str(runs[0.1]), 8, 1), "row": {}}))
+    assert mod.cached(path, mod.cell_key(cell, "sim", str(runs[0.1]), 8, 1)) == {}
+    assert mod.cached(path, mod.cell_key(cell, "sim", str(runs[1.0]), 8, 1)) is None
     path.write_text("{")  # half a file (not from write_atomic): recomputed, not a crash
     assert mod.cached(path, key) is None
 
