@@ -93,11 +93,6 @@ def main(argv: list[str] | None = None) -> int:
     groups = (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours)) + FIXED_GROUPS
     bounds = np.cumsum([0] + [k for _, k in groups])
 
-    def gain_of(obs):
-        if agent.config.uses_attention:
-            return agent.cbf_params(params, obs_norm, obs)[0][..., 1]
-        return jnp.full(obs.shape[:-1], sf.fixed_gain)
-
     def trace(k):
         state = env.reset(k)
         frames = geo.gate_frames(state.layout.gate_pos, state.layout.gate_yaw, cfg.gate_half_opening, cfg.gate_bar)
@@ -108,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
                                         env.applied_command(s))
             rows_obs = s.obs if s.filter_obs is None else s.filter_obs
-            gain = gain_of(s.obs)
+            gain = agent.filter_gain(params, obs_norm, s.obs)
             rows = barriers.obs_rows(layout, rows_obs, gain, drone_radius=r, margin=sf.margin,
                                      gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar, floor_z=sf.floor_z,
                                      neighbour_share=sf.neighbour_share, lookahead=(sf.lookahead_xy, sf.lookahead_z))

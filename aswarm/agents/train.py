@@ -134,6 +134,13 @@ class Agent:
         """theta [.., n, 2] = (penalty, gain) and attention weights [.., n, M + n - 1]."""
         return self.cbf.apply(params["cbf"], self.normalize(obs_norm, obs), hazard_mask(self.env.obs_layout, obs))
 
+    def filter_gain(self, params: dict, obs_norm, obs: jax.Array) -> jax.Array:
+        """The class-K gain [.., n] (1/s) the filter applies to each drone's rows: the attention-CBF network's output
+        where the method has it, else the fixed gain."""
+        if self.config.uses_attention:
+            return self.cbf_params(params, obs_norm, obs)[0][..., 1]
+        return jnp.full(obs.shape[:-1], self.config.safety_filter.fixed_gain)
+
     def filter_commands(self, params: dict, obs_norm, obs: jax.Array, cmd: jax.Array,
                         cyl_accel: jax.Array | None = None, filter_obs: jax.Array | None = None,
                         applied: jax.Array | None = None) -> cbf_filter.FilterResult:
@@ -148,10 +155,7 @@ class Agent:
             return cbf_filter.FilterResult(u=cmd, slack=zeros, intervened=zeros.astype(bool), correction_norm=zeros,
                                            active=jnp.zeros(cmd.shape[:-1] + (0,), bool),
                                            converged=jnp.ones(cmd.shape[:-1], bool))
-        if self.config.uses_attention:
-            gain = self.cbf_params(params, obs_norm, obs)[0][..., 1]
-        else:
-            gain = jnp.full(cmd.shape[:-1], self.config.safety_filter.fixed_gain)
+        gain = self.filter_gain(params, obs_norm, obs)
         ec = self.env.config
         layout, rows_obs = (self.env.obs_layout, obs) if filter_obs is None else (self.env.filter_layout, filter_obs)
         return cbf_filter.filter_from_obs(layout, rows_obs, cmd, gain, ec.max_speed, ec.cf.collision_radius,
