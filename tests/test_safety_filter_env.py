@@ -1,6 +1,8 @@
 """The CBF filter in closed loop with the simulator, built from observations only."""
 
 import dataclasses
+import functools
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -19,15 +21,34 @@ from aswarm.envs.randomization import OFF
 MARGIN = 0.05
 
 
+# The helpers below are cached: the tests share envs, fitted lags and compiled programs (the file's time was
+# mostly tracing and compiling the same programs again, the step response's among them).
+@functools.cache
 def _make(name, **overrides):
     """The scenario's env with exact observations: the filter's guarantees are about what it is shown (the
     robustness to noise and latency is measured in SITL, experiments/robustness.py)."""
     return envs.make(name, randomize=OFF, **overrides)
 
 
+@functools.cache
 def _lags(config) -> tuple[float, float]:
     drone = characterise(config)
     return drone.lag_xy, drone.lag_z
+
+
+@functools.cache
+def _jit(env):
+    """``env``'s reset, step and observation, compiled once."""
+    return SimpleNamespace(reset=jax.jit(env.reset), step=jax.jit(env.step), observe=jax.jit(env._observe))
+
+
+@functools.cache
+def _obs_filter(env, margin):
+    """The filter on ``env``'s observations at ``margin``, one gain for every drone (an argument)."""
+    c, safety = env.config, SafetyFilterConfig(margin=margin)
+    return jax.jit(lambda o, u, gain: cbf_filter.filter_from_obs(
+        env.obs_layout, o, u, jnp.full(o.shape[:-1], gain), c.max_speed, c.cf.collision_radius, safety,
+        c.gate_half_opening, c.gate_bar))
 
 
 def _fitted(env) -> SafetyFilterConfig:
@@ -36,16 +57,10 @@ def _fitted(env) -> SafetyFilterConfig:
 
 
 def _run(env, state, command, use_filter, seconds=3.0, gain=None, margin=MARGIN, log=None, until=None):
-    step = jax.jit(env.step)
-    c = env.config
+    step, filt = _jit(env).step, _obs_filter(env, margin)
     gain = _fitted(env).gain_max if gain is None else gain
-    steps = round(seconds * c.policy_freq)
-    safety = SafetyFilterConfig(margin=margin)
-    filt = jax.jit(lambda o, u: cbf_filter.filter_from_obs(env.obs_layout, o, u, jnp.full(o.shape[:-1], gain),
-                                                           c.max_speed, c.cf.collision_radius, safety,
-                                                           c.gate_half_opening, c.gate_bar))
-    for _ in range(steps):
-        res = filt(state.obs, command)
+    for _ in range(round(seconds * env.config.policy_freq)):
+        res = filt(state.obs, command, gain)
         if log is not None:
             log.append(res)
         state = step(state, res.u if use_filter else command)
@@ -59,13 +74,13 @@ def _place(env, state, pos):
     drones = DroneState(pos=jnp.asarray([pos]), quat=jnp.array([[1.0, 0.0, 0.0, 0.0]]), vel=jnp.zeros((1, 3)),
                         ang_vel=jnp.zeros((1, 3)))
     return state.replace(data=set_drone_state(state.data, drones),
-                         obs=jax.jit(env._observe)(drones, state.layout, state.tracker, jnp.zeros(())))
+                         obs=_jit(env).observe(drones, state.layout, state.tracker, jnp.zeros(())))
 
 
 def _gate_approach(lateral: float):
     """One drone 1.2 m before gate 0 on its axis, shifted sideways by ``lateral``, and the command along the axis."""
     env = _make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0)
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
     side = jnp.array([-jnp.sin(yaw), jnp.cos(yaw), 0.0])
@@ -121,7 +136,7 @@ def test_turning_into_the_gate_just_passed_is_stopped_only_with_the_filter(use_f
 @pytest.mark.parametrize("use_filter", [True, False])
 def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_filter):
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.0, p[1]]])))
     s = _run(env, s, jnp.array([[1.5, 0.0, 0.0]]), use_filter)
@@ -138,7 +153,7 @@ def test_constant_command_at_a_cylinder_stops_short_only_with_the_filter(use_fil
 def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direction, use_filter):
     env = _make("obstacles", num_agents=1, num_obstacles=0, layout_jitter=0.0)
     c = env.config
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     d = np.asarray(direction) / 1.5
     # 1.2 m from the wall (or the ceiling) the command points at.
     centre = (np.asarray(c.arena_low) + np.asarray(c.arena_high)) / 2
@@ -156,7 +171,7 @@ def test_flying_at_a_wall_or_the_ceiling_stops_short_only_with_the_filter(direct
 
 def test_two_drones_flying_head_on_keep_apart_with_the_filter():
     env = _make("obstacles", num_agents=2, num_obstacles=0, layout_jitter=0.0)
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     s = _run(env, s, jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), True, seconds=2.4)
     assert not bool(jnp.any(s.tracker.collided))
     assert float(jnp.linalg.norm(s.data.qpos[:3] - s.data.qpos[7:10])) > 2 * env.config.cf.collision_radius
@@ -164,7 +179,7 @@ def test_two_drones_flying_head_on_keep_apart_with_the_filter():
 
 def test_descending_into_the_floor_is_stopped():
     env = _make("hover", layout_jitter=0.0)
-    s = _run(env, jax.jit(env.reset)(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
+    s = _run(env, _jit(env).reset(jax.random.PRNGKey(0)), jnp.array([[0.0, 0.0, -1.5]]), True, seconds=3.0)
     assert not bool(s.tracker.collided[0])
     assert not bool(s.tracker.finished[0])  # still flying, not a goal reached on the way down
     assert float(s.data.qpos[2]) > env.config.cf.collision_radius
@@ -175,7 +190,7 @@ def test_largest_default_gain_is_safe_at_full_speed():
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     cfg = _fitted(env)
     assert TrainConfig().safety_filter.fitted(*_lags(env.config)) == cfg
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     p = s.layout.start_pos[0]
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + 1.5, p[1] + 0.05]])))
     s = _run(env, s, jnp.array([[env.config.max_speed, 0.0, 0.0]]), True, gain=cfg.gain_max,
@@ -183,18 +198,23 @@ def test_largest_default_gain_is_safe_at_full_speed():
     assert not bool(s.tracker.collided[0])
 
 
-def _fitted_filter(env, safety: SafetyFilterConfig, gain: float | None = None):
+@functools.cache
+def _accel_filter(env, safety: SafetyFilterConfig):
     c = env.config
-    gain = safety.gain_max if gain is None else gain
-    return jax.jit(lambda o, u, a, now: cbf_filter.filter_from_obs(
+    return jax.jit(lambda o, u, a, now, gain: cbf_filter.filter_from_obs(
         env.obs_layout, o, u, jnp.full(o.shape[:-1], gain), c.max_speed, c.cf.collision_radius, safety,
         c.gate_half_opening, c.gate_bar, a, now, (c.command_accel_limit, 1.0 / c.policy_freq)))
+
+
+def _fitted_filter(env, safety: SafetyFilterConfig, gain: float | None = None):
+    filt, gain = _accel_filter(env, safety), safety.gain_max if gain is None else gain
+    return lambda o, u, a, now: filt(o, u, a, now, gain)
 
 
 def _fly(env, state, command, filt, seconds):
     """Constant ``command``, filtered by ``filt`` (None: not), for ``seconds``: (state, smallest cylinder
     clearance seen)."""
-    step = jax.jit(env.step)
+    step = _jit(env).step
     lowest = np.inf
     for _ in range(round(seconds * env.config.policy_freq)):
         now = env.applied_command(state)
@@ -213,7 +233,7 @@ def test_a_cylinder_about_to_accelerate_at_a_hovering_drone_is_escaped_only_with
     with the bound (τ a = 0.34 s x 1.97 m/s² of extra retreat) it leaves in time."""
     env = _make("obstacles", num_agents=1, num_obstacles=0, num_moving=1, min_moving=1, layout_jitter=0.0)
     c = env.config
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     p = np.asarray(s.layout.start_pos[0])
     at = p[0] - (0.2 + c.obstacle_radius + c.cf.collision_radius)  # the cylinder's centre now: its sweep's -x end
     s = s.replace(layout=s.layout.replace(
@@ -235,7 +255,7 @@ def _flying_at_a_cylinder(gap: float):
     cylinder's surface straight ahead, its last commands 2 m/s too (as if it had flown there)."""
     env = _make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0)
     c = env.config
-    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    s = _jit(env).reset(jax.random.PRNGKey(0))
     p = np.asarray(s.layout.start_pos[0])
     s = s.replace(layout=s.layout.replace(cyl_center=jnp.array([[p[0] + gap + c.obstacle_radius
                                                                   + c.cf.collision_radius, p[1]]])))
@@ -243,7 +263,7 @@ def _flying_at_a_cylinder(gap: float):
                         vel=jnp.array([[2.0, 0.0, 0.0]]), ang_vel=jnp.zeros((1, 3)))
     cmd = jnp.array([[2.0, 0.0, 0.0]])
     s = s.replace(data=set_drone_state(s.data, drones), onboard=s.onboard.replace(commands=jnp.stack([cmd, cmd])),
-                  obs=jax.jit(env._observe)(drones, s.layout, s.tracker, jnp.zeros(())))
+                  obs=_jit(env).observe(drones, s.layout, s.tracker, jnp.zeros(())))
     return env, s, cmd
 
 

@@ -2,6 +2,8 @@
 
 import dataclasses
 import json
+import shutil
+from pathlib import Path
 
 import chex
 import jax
@@ -21,6 +23,13 @@ SMALL = dict(scenario="hover", num_envs=32, rollout_steps=8, minibatches=2, epoc
              total_steps=32 * 8 * 4, env_overrides=GEOMETRIC)
 
 
+@pytest.fixture(scope="module")
+def mappo_run(tmp_path_factory):
+    """One finished run of ``SMALL`` with MAPPO, for the tests that read a run and do not change it (each extra
+    run cost its tracing and lowering, some 5 s, even where the compiled program came from the cache)."""
+    return runner.train(TrainConfig(method="mappo", **SMALL), tmp_path_factory.mktemp("mappo") / "r", progress=False)
+
+
 def _restore(run_dir):
     cfg = checkpoint.load_config(run_dir)
     from aswarm.agents.train import make_train
@@ -35,7 +44,7 @@ def test_hover_learns_from_scratch(tmp_path):
     # (std 1 of 2 m/s, a new one every 40 ms) it hits the floor within a second in 98 % of episodes (the
     # geometric drone in 2 %), and this budget is too small to learn past that (README, issue #12).
     cfg = TrainConfig(scenario="hover", method="mappo", num_envs=128, rollout_steps=32, updates_per_chunk=10,
-                      total_steps=128 * 32 * 30, action_std_scale=0.3, env_overrides=(("randomize.enabled", False),))
+                      total_steps=128 * 32 * 20, action_std_scale=0.3, env_overrides=(("randomize.enabled", False),))
     run = runner.train(cfg, tmp_path / "run", progress=False)
     rows = runner.read_metrics(run)
     # The deterministic policy on the same 64 unseen episodes, before (the run's initial parameters) and after.
@@ -70,13 +79,11 @@ def test_a2c_takes_one_full_batch_step_per_rollout():
     assert all(jax.tree.leaves(changed))
 
 
-def test_eval_json_is_the_only_stdout(tmp_path, capsys):
+def test_eval_json_is_the_only_stdout(mappo_run, capsys):
     from aswarm import cli
 
-    cfg = TrainConfig(method="mappo", **SMALL)
-    run = runner.train(cfg, tmp_path / "r", progress=False)
     capsys.readouterr()
-    assert cli.main(["eval", "--checkpoint", str(run), "--episodes", "8", "--json"]) == 0
+    assert cli.main(["eval", "--checkpoint", str(mappo_run), "--episodes", "8", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["episodes"] == 8 and 0.0 <= out["success_rate"] <= 1.0
     lo, hi = out["success_ci95"]
@@ -101,11 +108,11 @@ def test_checkpoint_round_trip_and_resume_matches_uninterrupted(tmp_path):
     assert rows_full[-1]["train/loss"] == rows_res[-1]["train/loss"]
 
 
-def test_existing_run_folder_is_not_overwritten(tmp_path):
-    cfg = TrainConfig(method="mappo", **SMALL)
-    runner.train(cfg, tmp_path / "r", progress=False)
+def test_existing_run_folder_is_not_overwritten(mappo_run):
+    before = {p: p.stat().st_mtime_ns for p in mappo_run.rglob("*")}
     with pytest.raises(ValueError, match="already holds checkpoints: use --resume"):
-        runner.train(cfg, tmp_path / "r", progress=False)
+        runner.train(TrainConfig(method="mappo", **SMALL), mappo_run, progress=False)
+    assert {p: p.stat().st_mtime_ns for p in mappo_run.rglob("*")} == before
 
 
 def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch):
@@ -132,14 +139,14 @@ def test_nan_stops_training_and_keeps_last_good_checkpoint(tmp_path, monkeypatch
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(s.params))
 
 
-def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path):
+def test_unreadable_or_mismatched_checkpoint_is_a_clear_error(tmp_path, mappo_run):
     with pytest.raises(checkpoint.CheckpointError, match="not a run folder"):
         checkpoint.load_config(tmp_path)
     (tmp_path / "config.json").write_text("{not json")
     with pytest.raises(checkpoint.CheckpointError, match="not a valid aswarm run config"):
         checkpoint.load_config(tmp_path)
     cfg = TrainConfig(method="mappo", **SMALL)
-    run = runner.train(cfg, tmp_path / "r", progress=False)
+    run = Path(shutil.copytree(mappo_run, tmp_path / "r"))  # changed below
     # The policy-only copy (how the shipped pretrained policy is made) restores the same arrays.
     from aswarm.analysis import evaluate
 
@@ -417,10 +424,10 @@ def test_loop_timing_and_the_time_a_curve_reached_its_target():
     assert first_time_at(rows, t["chunk_ends"], 0.99, window=3) is None
 
 
-def test_a_run_writes_its_timing_and_the_command_prints_it(tmp_path, capsys):
+def test_a_run_writes_its_timing_and_the_command_prints_it(mappo_run, capsys):
     from aswarm import cli
 
-    run = runner.train(TrainConfig(method="mappo", **SMALL), tmp_path / "r", progress=False)
+    run = mappo_run
     t = json.loads((run / runner.TIMING).read_text())
     assert t["updates"] == 4 and t["env_steps"] == 4 * 32 * 8 and t["first_chunk_updates"] == 2
     assert t["chunk_ends"][-1][0] == 4 and 0 < t["first_chunk_s"] <= t["loop_s"] <= t["train_s"]

@@ -74,7 +74,10 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
     reset = jax.vmap(env.reset)
     step = jax.vmap(env.step)
 
-    def run(keys):
+    # The policy's arrays are arguments, not constants folded into the program: evaluating another checkpoint of
+    # the same configuration then runs the same program (a persistent-cache hit, not a compile), and XLA does
+    # not have to carry the weights through its passes.
+    def run(params, obs_norm, keys):
         state = reset(keys)
         recorded = jax.tree.map(jnp.zeros_like, state.metrics)
         ended = jnp.zeros(keys.shape[0], bool)
@@ -101,16 +104,16 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
     if batch <= 0:
         raise ValueError(f"invalid batch={batch}: must be > 0")
     if episodes <= batch:
-        def one(key):
-            rec, ended, interventions, infeasible, flying = run(jax.random.split(key, episodes))
+        def one(params, obs_norm, key):
+            rec, ended, interventions, infeasible, flying = run(params, obs_norm, jax.random.split(key, episodes))
             per = jnp.maximum(flying, 1.0)
             return rec, ended, interventions / per, infeasible / per
 
-        rec, ended, intervention_rate, infeasible_rate = jax.jit(one)(key)
+        rec, ended, intervention_rate, infeasible_rate = jax.jit(one)(params, obs_norm, key)
         return rec, ended, FilterStats(intervention_rate, infeasible_rate)
     keys = jax.random.split(key, episodes)
     run_batch = jax.jit(run)
-    parts = [run_batch(keys[i:i + batch]) for i in range(0, episodes, batch)]
+    parts = [run_batch(params, obs_norm, keys[i:i + batch]) for i in range(0, episodes, batch)]
     rec = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[p[0] for p in parts])
     ended = np.concatenate([np.asarray(p[1]) for p in parts])
     # Counts summed in float64 on the host: float32 stops counting drone-steps exactly past 2**24.

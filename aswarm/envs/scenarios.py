@@ -208,7 +208,10 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitud
 
     # Draw 0 is from k_off itself, so a scenario whose slots are too far apart ever to break the gap rule
     # (the race) keeps the layouts it always had; later draws replace it only where it breaks the rule.
-    draws = jnp.stack([offsets(k_off)] + [offsets(jax.random.fold_in(k_off, i)) for i in range(1, cfg.layout_draws)])
+    # One vmapped draw, not a Python loop of them: each random call inlines a copy of the generator, and a loop
+    # of 16 made this function the slowest part of the env to compile. The numbers are the loop's.
+    keys = jax.vmap(jax.random.fold_in, (None, 0))(k_off, jnp.arange(1, cfg.layout_draws))
+    draws = jax.vmap(offsets)(jnp.concatenate([k_off[None], keys]))
     pair = jnp.linalg.norm(draws[:, :, None] - draws[:, None, :], axis=-1) - 2 * cfg.obstacle_radius
     both = static[:, None] & static[None, :] & ~np.eye(m, dtype=bool)
     narrowest = jnp.min(jnp.where(both, pair, jnp.inf), axis=(1, 2), initial=jnp.inf)  # [draws]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -316,13 +317,11 @@ def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool 
     mesh = sharding.training_mesh(config.num_envs, config.devices)
     # The number of devices changes the order of floating-point sums: record it, so a resume matches.
     config = dataclasses.replace(config, devices=int(mesh.devices.size))
-    agent, init, update_chunk, _ = make_train(config, shard_rows=sharding.rows_constraint(mesh))
+    agent, init_fn, chunk_fn = train_program(make_train, config, mesh)
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         write_config(run_dir, config)
-    key = jax.random.PRNGKey(config.seed)
-    init_fn, chunk_fn = sharding.sharded_fns(init, update_chunk, jax.eval_shape(init, key), mesh, stacked=False)
-    program = Program(agent.env, init_fn, chunk_fn, (key,), mesh, stacked=False)
+    program = Program(agent.env, init_fn, chunk_fn, (jax.random.PRNGKey(config.seed),), mesh, stacked=False)
     result = run_loop(program, config, run_dir, [run_dir], progress=progress, max_updates=max_updates,
                       tensorboard=True, wandb=wandb)
     plot_curves(run_dir)
@@ -333,6 +332,19 @@ def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool 
         tmp.write_text(json.dumps(timing, indent=1) + "\n")
         tmp.replace(run_dir / TIMING)
     return run_dir
+
+
+@functools.lru_cache(maxsize=4)
+def train_program(make: Callable, config: TrainConfig, mesh) -> tuple:
+    """(agent, jitted init, jitted chunk) of ``config`` laid out over ``mesh``, built by ``make`` (``make_train``).
+
+    Kept for the process's next run of the same config and layout (a resume, the same run again from Python):
+    tracing and lowering the program took seconds each time even where the compiled program came from the
+    persistent cache, and they are the same. The config is the whole key, so any change builds anew.
+    """
+    agent, init, update_chunk, _ = make(config, shard_rows=sharding.rows_constraint(mesh))
+    like = jax.eval_shape(init, jax.random.PRNGKey(config.seed))
+    return (agent, *sharding.sharded_fns(init, update_chunk, like, mesh, stacked=False))
 
 
 def read_metrics(run_dir: Path) -> list[dict]:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import itertools
 import json
 import math
@@ -348,9 +349,18 @@ def build_program(group: Group, mesh=None) -> tuple:
     from aswarm.training import sharding
 
     base = group.trials[0].config
-    k = len(group.trials)
-    mesh = mesh or sharding.make_mesh(k, base.num_envs)
-    agent, init, chunk, _ = make_train(base, group.sweep_fields, shard_rows=sharding.rows_constraint(mesh))
+    mesh = mesh or sharding.make_mesh(len(group.trials), base.num_envs)
+    return (*_group_program(make_train, base, group.sweep_fields, len(group.trials), mesh), mesh)
+
+
+@functools.lru_cache(maxsize=4)
+def _group_program(make_train: Callable, base, sweep_fields: tuple[str, ...], k: int, mesh) -> tuple:
+    """(agent, jitted init, jitted chunk) of ``k`` trials of ``base`` that differ in ``sweep_fields`` and seeds.
+    Kept for the process's next build of the same group (a resumed sweep, the next round of a search), as
+    ``runner.train_program`` keeps a run's."""
+    from aswarm.training import sharding
+
+    agent, init, chunk, _ = make_train(base, sweep_fields, shard_rows=sharding.rows_constraint(mesh))
 
     def vinit(keys, values):
         # A loop, not vmap: batching the orthogonal initializers' QR over trials made XLA's batched LAPACK
@@ -360,11 +370,9 @@ def build_program(group: Group, mesh=None) -> tuple:
     def vchunk(ts, n: int):
         return jax.vmap(lambda s: chunk(s, n), spmd_axis_name="trial")(ts)
 
-    keys = np.stack([np.asarray(jax.random.PRNGKey(t.config.seed)) for t in group.trials])
-    values = hparams.stack([t.config for t in group.trials], group.sweep_fields)
-    like = jax.eval_shape(vinit, keys, values)
-    init_fn, chunk_fn = sharding.sharded_fns(vinit, vchunk, like, mesh, stacked=True)
-    return agent, init_fn, chunk_fn, mesh
+    keys = jax.ShapeDtypeStruct((k, *jax.random.PRNGKey(0).shape), jax.random.PRNGKey(0).dtype)
+    like = jax.eval_shape(vinit, keys, hparams.stack([base] * k, sweep_fields))
+    return (agent, *sharding.sharded_fns(vinit, vchunk, like, mesh, stacked=True))
 
 
 def _run_group(group: Group, out: Path, progress: bool, max_updates: int | None, mesh,
