@@ -231,6 +231,18 @@ def _record_episode(args: argparse.Namespace, need_attention: bool = False):
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    if args.curves:  # training curves of runs (their metrics.jsonl)
+        from aswarm.analysis import plots
+        from aswarm.training import runner
+
+        if args.checkpoint is not None or args.flight is not None:
+            raise ValueError("--curves, --checkpoint and --flight each name what to draw: allowed: one of them")
+        for d in args.curves:
+            if not (d / "metrics.jsonl").is_file():
+                raise ValueError(f"invalid --curves {d}: no metrics.jsonl there; allowed: run folders")
+        out = plots.check_output(args.out or Path("curves.png"))
+        print(f"wrote {runner.plot_curves(args.curves[0], out, compare=args.curves[1:])}")
+        return 0
     if args.flight is not None:  # a flight record of `aswarm fly` (numpy and matplotlib only)
         from aswarm.flight import record
 
@@ -430,6 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--flight", type=Path, default=None, metavar="RECORD",
                     help="instead: a flight record of `aswarm fly` (NAME.npz): top view and altitude of mocap vs "
                          "onboard estimate, commands before/after the filter, battery")
+    pl.add_argument("--curves", type=Path, nargs="+", default=None, metavar="RUN",
+                    help="instead: the training curves of one or more runs on the same axes (default out: curves.png)")
     pl.add_argument("--compare", type=Path, default=None, metavar="RECORD",
                     help="with --flight: another record drawn beside it (e.g. `aswarm sitl --replay`'s)")
     pl.add_argument("--out", type=Path, default=None,

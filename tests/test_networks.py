@@ -75,3 +75,61 @@ def test_paper_sizes_are_one_flag_away():
     params = jax.eval_shape(agent.init_params, jax.random.PRNGKey(0))
     kernels = [x.shape for x in jax.tree.leaves(params["cbf"]) if x.ndim == 2]
     assert (1024, 256) in kernels and any(k[1] == 3 for k in kernels)
+
+
+def test_pooled_critic_is_per_drone_equivariant_and_the_same_size_for_any_swarm():
+    from aswarm.agents.networks import PooledCritic
+
+    d = 5
+    obs = jax.random.normal(jax.random.PRNGKey(0), (3, 4, d))  # [batch, drones, D]
+    critic = PooledCritic(num_agents=4, hidden=(16,))
+    params = critic.init(jax.random.PRNGKey(1), obs.reshape(3, -1))
+    v = critic.apply(params, obs.reshape(3, -1))
+    chex.assert_shape(v, (3, 4))
+    perm = np.array([2, 0, 3, 1])
+    v_p = critic.apply(params, obs[:, perm].reshape(3, -1))
+    np.testing.assert_allclose(v_p, v[:, perm], rtol=1e-5, atol=1e-6)
+    # The same weights value a swarm of 16: its parameters do not depend on the number of drones.
+    big = jax.random.normal(jax.random.PRNGKey(2), (16 * d,))
+    chex.assert_shape(PooledCritic(num_agents=16, hidden=(16,)).apply(params, big), (16,))
+    assert jax.tree.map(jnp.shape, params) == jax.tree.map(
+        jnp.shape, PooledCritic(num_agents=16, hidden=(16,)).init(jax.random.PRNGKey(1), big))
+
+
+def test_pooled_critic_fits_values_that_depend_on_the_whole_swarm():
+    import optax
+
+    from aswarm.agents.networks import PooledCritic
+
+    # Each drone's value: its own first feature plus the swarm's mean second feature (what one drone's return
+    # owes to the others), which a per-drone MLP without the pooled context could not fit.
+    obs = jax.random.normal(jax.random.PRNGKey(0), (256, 6, 4))
+    target = obs[..., 0] + 2.0 * obs[..., 1].mean(-1, keepdims=True)
+    critic = PooledCritic(num_agents=6, hidden=(32, 32))
+    params = critic.init(jax.random.PRNGKey(1), obs.reshape(256, -1))
+    opt = optax.adam(3e-3)
+
+    @jax.jit
+    def step(params, opt_state):
+        loss, g = jax.value_and_grad(lambda p: jnp.mean((critic.apply(p, obs.reshape(256, -1)) - target) ** 2))(params)
+        updates, opt_state = opt.update(g, opt_state)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    opt_state = opt.init(params)
+    losses = []
+    for _ in range(400):
+        params, opt_state, loss = step(params, opt_state)
+        losses.append(float(loss))
+    assert losses[-1] < 0.05 * losses[0], (losses[0], losses[-1])
+
+
+def test_pooled_critic_is_a_config_choice():
+    from aswarm.agents import config, networks
+
+    assert set(config.CRITICS) == set(networks.CRITICS)  # the names the config allows are the modules there are
+    agent = _agent(critic="pooled")
+    params = jax.eval_shape(agent.init_params, jax.random.PRNGKey(0))
+    obs = jnp.zeros((agent.env.num_agents, agent.env.observation_size))
+    chex.assert_shape(jax.eval_shape(agent.critic.apply, params["critic"], obs.reshape(-1)), (agent.env.num_agents,))
+    with np.testing.assert_raises_regex(ValueError, "invalid critic='deep': allowed: joint, pooled"):
+        TrainConfig(critic="deep")

@@ -201,3 +201,24 @@ def test_cli_plot_draws_an_episode(tmp_path, capsys, monkeypatch, episode):
     assert method == "attention_cbf" and seconds == 1.0  # the run's own env overrides
     # Episode 2 of `aswarm eval --seed 7`.
     np.testing.assert_array_equal(key, np.asarray(jax.random.split(jax.random.PRNGKey(7), 10)[2]))
+
+
+def test_cli_plot_curves_draws_runs_on_the_same_axes(tmp_path, capsys):
+    import json
+
+    runs = []
+    for name, rate in (("a", 0.01), ("b", 0.03)):  # two runs learning at different rates
+        run = tmp_path / name
+        run.mkdir()
+        rows = [{"update": u, "env_steps": 2048 * u, "episode/success": min(1.0, rate * u),
+                 "episode/episode_return": 10 * rate * u, "train/explained_variance": 0.5} for u in range(1, 41)]
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+        runs.append(str(run))
+    one, both = tmp_path / "one.png", tmp_path / "both.png"
+    assert cli.main(["plot", "--curves", runs[0], "--out", str(one)]) == 0
+    assert cli.main(["plot", "--curves", *runs, "--out", str(both)]) == 0
+    assert capsys.readouterr().out.split() == ["wrote", str(one), "wrote", str(both)]
+    assert png_size(both) == (1430, 715) and both.read_bytes() != one.read_bytes()
+    assert cli.main(["plot", "--curves", runs[0], str(tmp_path), "--out", str(both)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"aswarm plot: error: invalid --curves {tmp_path}: no metrics.jsonl there; allowed: run folders"

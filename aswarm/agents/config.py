@@ -8,6 +8,8 @@ import math
 from aswarm.core.safety import SafetyFilterConfig
 from aswarm.envs.config import EnvConfig
 
+CRITICS = ("joint", "pooled")  # networks.CRITICS: the modules
+
 METHODS = {
     "attention_cbf": "the full method: attention-CBF penalties and CBF safety filter with learned gains",
     "attention_penalty": "attention-CBF penalties, no safety filter",
@@ -54,6 +56,10 @@ class TrainConfig:
     # Networks.
     actor_hidden: tuple[int, ...] = (64, 64)
     critic_hidden: tuple[int, ...] = (128, 128)
+    # "joint": an MLP over the swarm's joint observation with one output per drone (MAPPO's centralized critic);
+    # "pooled": one per-drone MLP over the drone's observation and a mean and max over the swarm's
+    # (networks.PooledCritic: its size does not grow with the swarm).
+    critic: str = "joint"
     cbf_hidden: tuple[int, ...] = (64, 64)  # paper: (1024, 256)
     cbf_embed: int = 8  # paper: 3
     cbf_state_hidden: int = 64
@@ -91,6 +97,8 @@ class TrainConfig:
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"invalid {f.name}={v!r}: must be a finite number")
+        if self.critic not in CRITICS:
+            raise ValueError(f"invalid critic={self.critic!r}: allowed: {', '.join(CRITICS)}")
         if not 0 <= self.target_tau <= 1:
             raise ValueError(f"invalid target_tau={self.target_tau}: must be in [0, 1] (0: no target critics)")
         if self.correction_penalty < 0:

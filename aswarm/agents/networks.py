@@ -54,6 +54,32 @@ class CentralCritic(nn.Module):
         return MLP(self.hidden, self.num_agents, self.activation)(joint_obs)
 
 
+class PooledCritic(nn.Module):
+    """Per-drone value from the drone's own normalized obs and the swarm's pooled embedding:
+    [..., n * D] -> [..., n].
+
+    One set of weights for every drone and any n: each drone's value is fitted to its own return (rewards are
+    per drone) with the rest of the swarm seen through a mean and a max over embedded observations, where the
+    joint critic's input, and its noise in each drone's advantage, grow with the swarm.
+    """
+
+    num_agents: int
+    hidden: Sequence[int] = (256, 256)
+    activation: str = "tanh"
+    embed: int = 64
+
+    @nn.compact
+    def __call__(self, joint_obs: jax.Array) -> jax.Array:
+        obs = joint_obs.reshape(*joint_obs.shape[:-1], self.num_agents, -1)
+        e = ACTIVATIONS[self.activation](nn.Dense(self.embed)(obs))  # [..., n, E]
+        pooled = jnp.concatenate([e.mean(-2, keepdims=True), e.max(-2, keepdims=True)], -1)
+        x = jnp.concatenate([obs, jnp.broadcast_to(pooled, (*e.shape[:-1], 2 * self.embed))], -1)
+        return MLP(self.hidden, 1, self.activation)(x)[..., 0]
+
+
+CRITICS = {"joint": CentralCritic, "pooled": PooledCritic}
+
+
 class AttentionCBF(nn.Module):
     """Attention over hazards (cylinders and neighbours) -> CBF parameters per drone.
 

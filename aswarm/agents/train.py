@@ -22,7 +22,7 @@ from flax import struct
 from aswarm import envs
 from aswarm.agents import cbf_filter, hparams, losses
 from aswarm.agents.config import TrainConfig
-from aswarm.agents.networks import Actor, AttentionCBF, CentralCritic, hazard_mask
+from aswarm.agents.networks import CRITICS, Actor, AttentionCBF, CentralCritic, PooledCritic, hazard_mask
 from aswarm.core.layout import OBS_NORM_CLIP
 
 
@@ -77,8 +77,8 @@ class Agent:
     config: TrainConfig
     env: envs.SwarmEnv
     actor: Actor
-    critic: CentralCritic
-    cost_critic: CentralCritic
+    critic: CentralCritic | PooledCritic
+    cost_critic: CentralCritic | PooledCritic
     cbf: AttentionCBF
     dist: NormalTanhDistribution
 
@@ -91,8 +91,8 @@ class Agent:
         return cls(
             config=config, env=env,
             actor=Actor(hidden=config.actor_hidden),
-            critic=CentralCritic(num_agents=n, hidden=config.critic_hidden),
-            cost_critic=CentralCritic(num_agents=n, hidden=config.critic_hidden),
+            critic=CRITICS[config.critic](num_agents=n, hidden=config.critic_hidden),
+            cost_critic=CRITICS[config.critic](num_agents=n, hidden=config.critic_hidden),
             cbf=AttentionCBF(layout=env.obs_layout, embed=config.cbf_embed, hidden=config.cbf_hidden,
                              state_hidden=config.cbf_state_hidden, penalty_max=config.penalty_max,
                              gain_min=config.safety_filter.gain_min,

@@ -27,7 +27,7 @@ class CheckpointError(ValueError):
 
 
 # What shapes the policy item (params, observation normaliser) and, with STATE_KEYS, the whole train state.
-POLICY_KEYS = ("method", "actor_hidden", "critic_hidden", "cbf_hidden", "cbf_embed", "cbf_state_hidden",
+POLICY_KEYS = ("method", "actor_hidden", "critic", "critic_hidden", "cbf_hidden", "cbf_embed", "cbf_state_hidden",
                "obs_size", "num_cylinders", "num_neighbours")
 STATE_KEYS = POLICY_KEYS + ("num_agents", "num_obstacles", "num_moving", "num_gates", "max_neighbours", "num_envs")
 # Unreadable steps are moved here on resume (outside checkpoints/, where orbax would list them again).
@@ -37,7 +37,7 @@ UNREADABLE_DIR = "checkpoints-unreadable"
 def fingerprint(config: TrainConfig, env) -> dict:
     """What fixes the shapes of a train state of ``config`` on ``env`` (JSON-ready)."""
     fp = {"method": config.method, "actor_hidden": list(config.actor_hidden),
-          "critic_hidden": list(config.critic_hidden), "cbf_hidden": list(config.cbf_hidden),
+          "critic": config.critic, "critic_hidden": list(config.critic_hidden), "cbf_hidden": list(config.cbf_hidden),
           "cbf_embed": config.cbf_embed, "cbf_state_hidden": config.cbf_state_hidden,
           "obs_size": int(env.observation_size), "num_cylinders": int(env.obs_layout.num_cylinders),
           "num_neighbours": int(env.obs_layout.num_neighbours), "num_agents": int(env.num_agents),

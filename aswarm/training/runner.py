@@ -7,7 +7,7 @@ import functools
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
@@ -352,39 +352,41 @@ def read_metrics(run_dir: Path) -> list[dict]:
     return [json.loads(r) for r in path.read_text().splitlines() if r] if path.exists() else []
 
 
-def plot_curves(run_dir: Path) -> Path | None:
-    """The paper's Fig. 7 (reward, episode time, explained variance vs update) plus success and collision."""
+def plot_curves(run_dir: Path, out: Path | None = None, compare: Sequence[Path] = ()) -> Path | None:
+    """The paper's Fig. 7 (reward, episode time, explained variance vs env steps) plus success and collision;
+    with ``compare``, those runs' curves on the same axes (labelled by folder). Written to ``out``, by default
+    the run's ``curves.png``; None for a run with no metrics yet."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = read_metrics(run_dir)
-    if not rows:
+    runs = [(Path(d), read_metrics(d)) for d in (run_dir, *compare)]
+    if not runs[0][1]:
         return None
-    u = np.array([r["update"] for r in rows])
-
-    def series(name):
-        return np.array([r.get(name, math.nan) for r in rows])
-
     panels = [("episode/episode_return", "mean episode return"), ("episode/mission_time", "episode time (s)"),
               ("train/explained_variance", "explained variance"), ("episode/success", "success rate"),
               ("episode/collision", "collision rate"), ("safety/intervention_rate", "filter intervention rate")]
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
-    for ax, (name, title) in zip(axes.flat, panels):
-        y = series(name)
-        ax.plot(u, y, lw=0.8, alpha=0.4, color="C0")
-        if len(y) >= 10:
-            w = max(1, len(y) // 20)
-            smooth = np.convolve(np.nan_to_num(y), np.ones(w) / w, mode="valid")
-            ax.plot(u[w - 1:], smooth, color="C0")
+    for i, (d, rows) in enumerate(runs):
+        x = np.array([r["env_steps"] for r in rows])
+        for ax, (name, _) in zip(axes.flat, panels):
+            y = np.array([r.get(name, math.nan) for r in rows])
+            ax.plot(x, y, lw=0.8, alpha=0.3, color=f"C{i % 10}")
+            if len(y) >= 10:  # a moving mean over a twentieth of the run: episodes end in bursts
+                w = max(1, len(y) // 20)
+                ax.plot(x[w - 1:], np.convolve(np.nan_to_num(y), np.ones(w) / w, mode="valid"), color=f"C{i % 10}",
+                        label=d.name if ax is axes.flat[0] and compare else None)
+    for ax, (_, title) in zip(axes.flat, panels):
         ax.set_title(title)
-        ax.set_xlabel("update")
+        ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
-    fig.suptitle(f"{Path(run_dir).name}")
+    if compare:
+        axes.flat[0].legend(fontsize=8)
+    fig.suptitle(" vs ".join(d.name for d, _ in runs))
     fig.tight_layout()
     from aswarm.analysis.plots import save_figure
 
-    out = save_figure(fig, Path(run_dir) / "curves.png", dpi=110)
+    out = save_figure(fig, Path(out) if out is not None else Path(run_dir) / "curves.png", dpi=110)
     plt.close(fig)
     return out
