@@ -199,6 +199,16 @@ def test_unreadable_checkpoints_give_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+def test_the_16_drone_policy_ships_trained_on_from_the_4_drone_one():
+    config16, policy16 = evaluate.load("pretrained:obstacles16")
+    assert (config16.env.num_agents, config16.critic, config16.init_from) == (16, "pooled", "pretrained:obstacles")
+    assert "pretrained:obstacles16" in evaluate.shipped()
+    _, policy4 = evaluate.load("pretrained:obstacles")
+    actor16, actor4 = jax.tree.leaves(policy16["params"]["actor"]), jax.tree.leaves(policy4["params"]["actor"])
+    assert [a.shape for a in actor16] == [a.shape for a in actor4]  # the same observation layout: it flies any size
+    assert not all(np.array_equal(a, b) for a, b in zip(actor16, actor4))  # and it trained on
+
+
 def test_corrupt_checkpoint_gives_a_clear_error(run_dir, tmp_path):
     import shutil
 

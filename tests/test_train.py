@@ -1,6 +1,7 @@
 """Training: learning happens, checkpoints round-trip, resume reproduces, faults stop cleanly."""
 
 import dataclasses
+import functools
 import json
 import shutil
 from pathlib import Path
@@ -435,3 +436,50 @@ def test_a_run_writes_its_timing_and_the_command_prints_it(mappo_run, capsys):
     cli._print_timing(run)
     line = capsys.readouterr().out.strip()
     assert line.startswith("trained 1,024 env steps in 0 min") and "after the first chunk" in line, line
+
+
+def _fresh_state(config: TrainConfig, stacked: int = 0):
+    """A train state's networks and normaliser as ``make_train``'s init lays them out (the rest is not read)."""
+    from brax.training.acme import running_statistics
+
+    from aswarm.agents.train import Agent, TrainState
+
+    agent = Agent.build(config)
+    params = agent.init_params(jax.random.PRNGKey(7))
+    obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((agent.env.observation_size,), jnp.float32))
+    if stacked:
+        params, obs_norm = jax.tree.map(lambda x: jnp.stack([x] * stacked), (params, obs_norm))
+    return TrainState(params=params, opt_state=None, obs_norm=obs_norm, env_state=None, key=None, update=None,
+                      env_steps=None)
+
+
+@pytest.mark.parametrize("stacked", [0, 2])
+def test_init_from_copies_the_networks_that_fit_and_keeps_the_others_fresh(stacked):
+    from aswarm.analysis import evaluate
+
+    _, source = evaluate.load("pretrained:obstacles")  # 4 drones, joint critic over their 4 observations
+    config = TrainConfig(scenario="obstacles", init_from="pretrained:obstacles",
+                         env_overrides=(("num_agents", 8), ("max_neighbours", 3)))
+    state = _fresh_state(config, stacked)
+    lines = []
+    out = runner.warm_start(state, config.init_from, stacked=bool(stacked), log=lines.append)
+    for i in range(max(stacked, 1)):  # every trial of a stacked (sweep) state starts from the same networks
+        row = functools.partial(jax.tree.map, lambda x, i=i: x[i] if stacked else x)
+        chex.assert_trees_all_equal(row(out.params["actor"]), source["params"]["actor"])
+        chex.assert_trees_all_equal(row(out.params["cbf"]), source["params"]["cbf"])
+        chex.assert_trees_all_equal(row(out.obs_norm), source["obs_norm"])
+    # The joint critic of 8 drones has another input width than the source's 4: it keeps its own weights.
+    chex.assert_trees_all_equal(out.params["critic"], state.params["critic"])
+    assert lines == ["init_from pretrained:obstacles: copied actor, cbf; fresh cost_critic, critic"]
+    pooled = dataclasses.replace(config, critic="pooled")  # its size does not depend on the swarm's: fresh too
+    runner.warm_start(_fresh_state(pooled), pooled.init_from, log=lines.append)
+    assert lines[-1] == "init_from pretrained:obstacles: copied actor, cbf; fresh cost_critic, critic"
+
+
+def test_init_from_a_policy_of_another_observation_layout_is_a_clear_error():
+    # Two neighbour rows where the source observed three.
+    config = TrainConfig(scenario="obstacles", init_from="pretrained:obstacles", env_overrides=(("max_neighbours", 2),))
+    with pytest.raises(checkpoint.CheckpointError, match=r"invalid init_from='pretrained:obstacles'.*layout"):
+        runner.warm_start(_fresh_state(config), config.init_from)
+    with pytest.raises(checkpoint.CheckpointError, match="unknown shipped policy 'pretrained:nope'"):
+        runner.warm_start(_fresh_state(config), "pretrained:nope")

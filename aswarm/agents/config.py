@@ -81,6 +81,11 @@ class TrainConfig:
     # the same way. On a CPU each core is a device (sharding.use_cpu_cores): 2 cores trained the race at
     # 1.33x the env-steps/s of one device holding both (BENCHMARKS.md).
     devices: int = 0
+    # A checkpoint (run folder, 'pretrained' or 'pretrained:NAME') whose networks start this run: every network
+    # whose shapes fit is copied (the actor and the attention-CBF network of a policy with the same observation
+    # layout), the others start fresh (a joint critic of another swarm size), and the observation normaliser comes
+    # along. "" starts from random weights. How a 16-drone policy starts from the 4-drone one (README, "Swarms").
+    init_from: str = ""
     # Host loop.
     checkpoint_minutes: float = 5.0
     updates_per_chunk: int = 10

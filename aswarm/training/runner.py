@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import json
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -188,6 +189,10 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
             log(f"{label}: resumed at update {start}")
     else:
         start, good = 0, [True] * len(trial_dirs)
+        if config.init_from:
+            started = warm_start(sharding.fetch(ts), config.init_from, stacked=program.stacked,
+                                 log=log or (lambda line: print(line, file=sys.stderr)))
+            ts = jax.tree.map(sharding.put, started, shardings)
     if primary:
         for d, ok in zip(trial_dirs, good):
             truncate_log(d / "metrics.jsonl", start)
@@ -332,6 +337,42 @@ def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool 
         tmp.write_text(json.dumps(timing, indent=1) + "\n")
         tmp.replace(run_dir / TIMING)
     return run_dir
+
+
+def warm_start(state, source: str, stacked: bool = False, log: Callable[[str], None] = print):
+    """``state`` with the networks of checkpoint ``source`` where their shapes fit (``TrainConfig.init_from``).
+
+    A network (a top-level entry of ``params``: actor, critic, cost_critic, cbf) is copied whole or not at all: half a
+    critic is no warm start. The observation normaliser comes along with the actor. ``stacked`` (a sweep's
+    state, one row per trial) gives every trial the same start. A CheckpointError when the actor does not fit:
+    the run would learn from scratch while its config claims a warm start.
+    """
+    from aswarm.analysis import evaluate
+
+    _, policy = evaluate.load(source)
+
+    def fits(new, old) -> bool:
+        return jax.tree.structure(new) == jax.tree.structure(old) and all(
+            np.shape(a)[int(stacked):] == np.shape(b) for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(old)))
+
+    def take(new, old):
+        return jax.tree.map(lambda a, b: np.broadcast_to(np.asarray(b, np.asarray(a).dtype), np.shape(a)), new, old)
+
+    params, copied, fresh = dict(state.params), [], []
+    # The Lagrange multiplier is no network: it starts where the config says (lagrange_init, which a sweep may vary).
+    for name, net in ((k, v) for k, v in state.params.items() if k != "lagrange"):
+        if name in policy["params"] and fits(net, policy["params"][name]):
+            params[name] = take(net, policy["params"][name])
+            copied.append(name)
+        else:
+            fresh.append(name)
+    if "actor" not in copied or not fits(state.obs_norm, policy["obs_norm"]):
+        raise checkpoint.CheckpointError(
+            f"invalid init_from={source!r}: its actor or observation normaliser does not fit this run's "
+            "(another observation layout: scenario, cylinders or max_neighbours differ)")
+    target = {k: params[k] for k in state.target}  # target critics start where their critics do
+    log(f"init_from {source}: copied {', '.join(sorted(copied))}; fresh {', '.join(sorted(fresh)) or 'none'}")
+    return state.replace(params=params, obs_norm=take(state.obs_norm, policy["obs_norm"]), target=target)
 
 
 @functools.lru_cache(maxsize=4)
