@@ -471,7 +471,8 @@ def test_init_from_copies_the_networks_that_fit_and_keeps_the_others_fresh(stack
     # The joint critic of 8 drones has another input width than the source's 4: it keeps its own weights.
     chex.assert_trees_all_equal(out.params["critic"], state.params["critic"])
     assert lines == ["init_from pretrained:obstacles: copied actor, cbf; fresh cost_critic, critic"]
-    pooled = dataclasses.replace(config, critic="pooled")  # its size does not depend on the swarm's: fresh too
+    # A pooled critic from a joint one's checkpoint: other networks altogether, so it starts fresh too.
+    pooled = dataclasses.replace(config, critic="pooled")
     runner.warm_start(_fresh_state(pooled), pooled.init_from, log=lines.append)
     assert lines[-1] == "init_from pretrained:obstacles: copied actor, cbf; fresh cost_critic, critic"
 

@@ -190,8 +190,7 @@ def run_loop(program: Program, config: TrainConfig, ckpt_dir: Path, trial_dirs: 
     else:
         start, good = 0, [True] * len(trial_dirs)
         if config.init_from:
-            started = warm_start(sharding.fetch(ts), config.init_from, stacked=program.stacked,
-                                 log=log or (lambda line: print(line, file=sys.stderr)))
+            started = warm_start(sharding.fetch(ts), config.init_from, stacked=program.stacked, log=log)
             ts = jax.tree.map(sharding.put, started, shardings)
     if primary:
         for d, ok in zip(trial_dirs, good):
@@ -339,15 +338,18 @@ def train(config: TrainConfig | None, run_dir: Path | None = None, resume: bool 
     return run_dir
 
 
-def warm_start(state, source: str, stacked: bool = False, log: Callable[[str], None] = print):
+def warm_start(state, source: str, stacked: bool = False, log: Callable[[str], None] | None = None):
     """``state`` with the networks of checkpoint ``source`` where their shapes fit (``TrainConfig.init_from``).
 
     A network (a top-level entry of ``params``: actor, critic, cost_critic, cbf) is copied whole or not at all: half a
     critic is no warm start. The observation normaliser comes along with the actor. ``stacked`` (a sweep's
     state, one row per trial) gives every trial the same start. A CheckpointError when the actor does not fit:
-    the run would learn from scratch while its config claims a warm start.
+    the run would learn from scratch while its config claims a warm start. ``log`` (default: stderr) gets the line
+    saying what was copied.
     """
     from aswarm.analysis import evaluate
+
+    log = log or (lambda line: print(line, file=sys.stderr))
 
     _, policy = evaluate.load(source)
 
