@@ -1,5 +1,6 @@
 import os
 import tempfile
+from importlib.metadata import version
 
 # Tests run on the CPU whatever the machine has.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -8,7 +9,11 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # (the older loop emitters generate far less code) in about half of that again; the slower code costs less than
 # the compile saves (BENCHMARKS.md, "Test suite"). Subprocesses that tests start inherit them. Programs of
 # `aswarm` itself, outside the tests, compile with XLA's defaults.
-TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
+# jaxlib 0.11 dropped the older emitters (and their flag), and XLA aborts the whole process, silently under
+# pytest's capture, on a flag it does not know.
+_JAXLIB = tuple(int(part) for part in version("jaxlib").split(".")[:2])
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=0" + (
+    " --xla_cpu_use_fusion_emitters=false" if _JAXLIB < (0, 11) else "")
 if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):  # (pytest-xdist's workers inherit it)
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 

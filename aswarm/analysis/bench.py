@@ -150,7 +150,10 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
+    backend = jax.default_backend()
+    if backend != "cpu":  # name the accelerator, not only its platform
+        backend = f"{backend} ({jax.device_count()} x {jax.devices()[0].device_kind})"
+    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {backend}"
 
 
 def ensure_peer_venv(venv: Path) -> str | None:
