@@ -4,11 +4,12 @@
     python experiments/safety_matrix.py --policy dynamic=runs/dynamic --policy obstacles-swarm=runs/obstacles16
     python experiments/safety_matrix.py --only race,dynamic-3     # a subset (the other cells stay as cached)
     python experiments/safety_matrix.py --quick                   # 8 episodes a cell, its own cache: CI
-    make safety-matrix ARGS="--policy lab=runs/lab"
+    make safety-matrix ARGS="--policy lab=runs/lab"             # another policy for one kind of cell
 
 A cell is a scenario with env overrides, flown by the policy of the kind it needs (``--policy KIND=RUN``, or
 ``--policy CELL=RUN`` for one cell; by default the shipped ones: ``pretrained`` for the race and its swarms,
-``pretrained:dynamic``, ``pretrained:obstacles`` for ``obstacles`` and its swarms). A cell whose policy was not given is
+``pretrained:dynamic``, ``pretrained:obstacles`` for ``obstacles`` and its swarms, ``pretrained:race-moving``,
+``pretrained:lab``). A cell whose policy was not given is
 listed as not run; one whose policy observes another layout (other numbers of cylinders or neighbours) is listed
 with the reason. Dynamic cells move exactly k of the ``dynamic`` preset's 3 cylinder slots (``min_moving =
 max_moving = k``; the others are absent), so one policy trained on the preset (1 to 3 moving) flies all six. "fast"
@@ -72,7 +73,7 @@ SHIPPED = "pretrained"
 # trained at 16 drones, README).
 DEFAULT_POLICIES = {"race": SHIPPED, "race-swarm": SHIPPED, "dynamic": "pretrained:dynamic",
                     "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles",
-                    "race-moving": "pretrained:race-moving"}
+                    "race-moving": "pretrained:race-moving", "lab": "pretrained:lab"}
 # A policy's kind: what it must have been trained on to fit its cells' observation layout.
 KINDS = {
     "race": f"a race policy: 4 drones, {RACE_SLOTS} static cylinders (default: {SHIPPED}, the shipped one)",
@@ -83,7 +84,7 @@ KINDS = {
     "obstacles-swarm": f"an obstacles policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env "
                        f"max_neighbours={SWARM_NEIGHBOURS}); SITL flies obstacles-16 from a bundle exported for 16 "
                        "drones (aswarm export --env)",
-    "lab": "a lab policy: 2 drones, 3 cylinders",
+    "lab": "a lab policy: 2 drones, 3 cylinders (default: pretrained:lab)",
     "dynamic": "a dynamic policy: trained on the dynamic preset (3 cylinder slots, 1 to 3 of them moving)",
 }
 

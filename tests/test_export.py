@@ -209,6 +209,14 @@ def test_the_16_drone_policy_ships_trained_on_from_the_4_drone_one():
     assert not all(np.array_equal(a, b) for a, b in zip(actor16, actor4))  # and it trained on
 
 
+def test_the_lab_policy_ships_for_the_lab_room_as_it_stands():
+    config, _ = evaluate.load("pretrained:lab")
+    assert config.scenario == "lab" and "pretrained:lab" in evaluate.shipped()
+    # Its room is the preset's, field for field: a change to the preset (its cylinders' clearance from the gates
+    # changed in session 18) needs a policy trained on the new room.
+    assert config.env == envs.make("lab").config
+
+
 def test_corrupt_checkpoint_gives_a_clear_error(run_dir, tmp_path):
     import shutil
 

@@ -18,12 +18,13 @@ def _module(name: str = "safety_matrix"):
     return mod
 
 
-def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys):
+def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys, monkeypatch):
     mod = _module()
     out = tmp_path / "results"
     # race (4 drones, the shipped policy, also in SITL), race-moving2 (10 cylinders: the shipped policy does not fit),
-    # lab (no policy given) and dynamic-1 (the shipped dynamic policy by default, 1 of its 3 slots moving):
-    # every kind of row in one short run.
+    # lab (no policy: as if pretrained:lab had not shipped) and dynamic-1 (the shipped dynamic policy by default, 1
+    # of its 3 slots moving): every kind of row in one short run.
+    monkeypatch.delitem(mod.DEFAULT_POLICIES, "lab")
     argv = ["--quick", "--episodes", "2", "--only", "race,race-moving2,lab,dynamic-1", "--policy",
             "race-moving=pretrained", "--out", str(out)]
     assert mod.main(argv) == 0
