@@ -4,7 +4,7 @@
     python experiments/safety_matrix.py --policy dynamic=runs/dynamic --policy obstacles-swarm=runs/obstacles16
     python experiments/safety_matrix.py --only race,dynamic-3     # a subset (the other cells stay as cached)
     python experiments/safety_matrix.py --quick                   # 8 episodes a cell, its own cache: CI
-    make safety-matrix ARGS="--policy lab=runs/lab"             # another policy for one kind of cell
+    make safety-matrix ARGS="--policy lab=runs/lab"               # another policy for one kind of cell
 
 A cell is a scenario with env overrides, flown by the policy of the kind it needs (``--policy KIND=RUN``, or
 ``--policy CELL=RUN`` for one cell; by default the shipped ones: ``pretrained`` for the race and its swarms,

@@ -37,7 +37,8 @@ SCENARIOS: dict[str, Scenario] = {
     # gate_clearance 0.7 (0.5 before session 18): at 0.5 a cylinder could stand on a gate's approach, 0.5 m of
     # track before a 0.5 m opening, where the filter's margins to the cylinder and the frame left no line through
     # it; policies stalled there (68 % success) and a longer run collapsed. At 0.7 the 3 cylinders fill the track's
-    # 3 slots, jittered inside them, as a fixed course in a real room is (README, "The lab room").
+    # 3 slots, jittered inside them, as a fixed course in a real room is (README: "The race among moving cylinders,
+    # and the lab room").
     "lab": Scenario(
         "track", "the paper's real flight: 2 drones, 2 gates, 3 cylinders in a 4 x 4 x 2 m room",
         dict(num_agents=2, num_obstacles=3, num_gates=2, track_radii=(1.3, 0.9), episode_seconds=15.0,
