@@ -411,8 +411,9 @@ def test_loop_timing_and_the_time_a_curve_reached_its_target():
     assert t["env_steps_per_s"] == pytest.approx(3200 / 51) and t["steady_env_steps_per_s"] == pytest.approx(125.0)
     assert t["chunk_ends"] == [[30, 30.0], [40, 38.0], [50, 46.0], [52, 51.0]]
     assert runner.loop_timing([(10, 30.0)], 100)["steady_env_steps_per_s"] is None
-    # One chunk length for the whole loop where one from 10 down to 5 divides it (the race's 488 updates: 8).
-    assert [runner.chunk_length(u, 10) for u in (488, 610, 487, 6, 1)] == [8, 10, 10, 6, 10]
+    # One chunk length for the whole loop where one from 10 down to 3 divides it (the race's 488 updates: 8; the GPU
+    # file's 8M steps, 244 updates: 4).
+    assert [runner.chunk_length(u, 10) for u in (488, 610, 487, 6, 1, 244)] == [8, 10, 10, 6, 10, 4]
     # Success per update from update 28; update 32 ended no episode and does not count towards the window of 3.
     succ = [0.0, 0.5, 1.0, 1.0, None, 0.9, 1.0, 1.0]
     rows = [{"update": 28 + i, "episodes": 0.0 if s is None else 4.0, "episode/success": s or 0.0}
