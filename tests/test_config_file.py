@@ -44,6 +44,15 @@ def test_race_example_sets_every_field_and_equals_the_cli_defaults(monkeypatch):
     assert got[0] == got[1] == TrainConfig()
 
 
+def test_the_gpu_example_is_the_defaults_with_a_gpu_sized_batch():
+    config = run_config.load_file(RACE.with_name("race_gpu.toml"))
+    sized = dict(num_envs=2048, rollout_steps=16, minibatches=8, total_steps=12_000_000)
+    assert config == dataclasses.replace(TrainConfig(), **sized)
+    # A gradient step sees as many env steps as one of the defaults' (4,096): the GPU file takes more of them.
+    per_step = config.num_envs * config.rollout_steps // config.minibatches
+    assert per_step == TrainConfig().num_envs * TrainConfig().rollout_steps // TrainConfig().minibatches == 4096
+
+
 def test_config_file_fields_and_flags_over_them(tmp_path, monkeypatch):
     path = tmp_path / "mine.toml"
     path.write_text('scenario = "hover"\nmethod = "mappo"\nactor_hidden = [32, 16]\ntotal_steps = 1_000\n'
