@@ -40,16 +40,19 @@ def main(argv: list[str] | None = None) -> int:
 
     seed = EVAL_SEED if args.seed is None else args.seed
     names = ("success_rate", "collision_rate", "collision_gate_rate", "collision_floor_rate",
-             "collision_obstacle_rate", "collision_drone_rate", "filter_intervention_rate")
+             "collision_obstacle_rate", "collision_drone_rate", "filter_intervention_rate", "filter_infeasible_rate",
+             "filter_escape_rate")
     for variant in variants:
         fields = dict(variant)
         overrides = fields.pop("env", [])
         _, agent, restored = evaluate.load_agent(args.checkpoint, env_overrides=overrides)
         safety = dataclasses.replace(agent.config.safety_filter, **fields)
         agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), agent.env)
-        rec, _, rate = evaluate.rollout_episodes(agent, restored["params"], restored["obs_norm"], agent.env,
-                                                 args.episodes, jax.random.PRNGKey(seed))
-        s = evaluate.summarize({k: np.asarray(x) for k, x in rec.items()}, float(rate))
+        rec, _, stats = evaluate.rollout_with_filter_stats(agent, restored["params"], restored["obs_norm"], agent.env,
+                                                           args.episodes, jax.random.PRNGKey(seed))
+        s = evaluate.summarize({k: np.asarray(x) for k, x in rec.items()}, float(stats.intervention_rate),
+                               float(stats.infeasible_rate))
+        s["filter_escape_rate"] = float(stats.escape_rate)
         mission = "-" if s["mission_time"] is None else f"{s['mission_time']:.1f} s"  # None: no success
         print(json.dumps(variant), {k: round(s[k], 4) for k in names}, f"mission {mission}", flush=True)
     return 0

@@ -694,3 +694,114 @@ def test_the_gain_range_is_still_swept_by_its_flat_names_as_a_value_hyperparamet
     assert group.sweep_fields == ("gain_min",)
     np.testing.assert_allclose(hparams.stack(spec.configs, group.sweep_fields)["gain_min"], [0.2, 0.4])
     assert hparams.replaced(spec.configs[0], {"gain_min": 0.4}) == spec.configs[1]
+
+
+def _wall_trap_obs(drone_y_gap: float = 0.25, cylinder_y: float = 0.15):
+    """One drone flying +x beside the arena's y-low wall (``drone_y_gap`` m from it) with a cylinder (radius 0.15)
+    ahead at (0.40, ``cylinder_y``) from it, on the side away from the wall: the 16-drone wall trap of the README."""
+    layout = ObsLayout(num_cylinders=1, num_neighbours=1)
+    obs = np.zeros(layout.size)
+    f = layout.own_slices
+    obs[f["altitude"]] = 1.0
+    obs[f["wall_clearance"]] = [3.0, 3.0, drone_y_gap, 3.0, 1.0]
+    cyl0 = layout.own_dim
+    rel = np.array([0.40, cylinder_y])
+    cyl = np.zeros(CYL.dim)
+    cyl[CYL.slice("rel_xy")] = rel
+    cyl[CYL.column("clearance")] = np.linalg.norm(rel) - 0.15 - 0.06
+    cyl[CYL.column("present")] = 1.0
+    obs[cyl0:cyl0 + CYL.dim] = cyl
+    return layout, obs
+
+
+def test_the_deadlock_escape_slides_a_wedged_drone_around_the_cylinder_hand_derived():
+    from aswarm.agents.cbf_filter import filter_from_obs
+
+    layout, obs = _wall_trap_obs()
+    cmd, gain = np.array([1.5, 0.0, 0.0]), np.array(1.0)
+    plain = SafetyFilterConfig(margin=0.1)
+    escape = dataclasses.replace(plain, escape=True)
+    # Hand-derived: the cylinder's row has the unit normal a = -(0.40, 0.15)/0.427 and b = -(0.427 - 0.31) (gain 1),
+    # the wall's u_y >= -(0.25 - 0.16). Projecting (1.5, 0, 0) onto both leaves u_x = (b - a_y u_y) / a_x = 0.158 m/s
+    # forward: under a quarter of the 1.5 asked, with the cylinder facing the drone, so stuck.
+    d = math.hypot(0.40, 0.15)
+    a = -np.array([0.40, 0.15]) / d
+    u_y = -0.09
+    u_x = (-(d - 0.31) - a[1] * u_y) / a[0]
+    res = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, plain)
+    np.testing.assert_allclose(res.u, [u_x, u_y, 0.0], atol=1e-5)  # the QP's slack weight 1e6: not exactly 0
+    assert res.u[0] < 0.25 * 1.5
+    # The escape: 1.5 m/s along the cylinder's tangent, on the side away from the wall (the counterclockwise tangent
+    # (-a_y, a_x) points at the wall here, so the other one), which both rows let through unchanged.
+    tangent = -np.array([-a[1], a[0]])
+    out = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, escape)
+    assert out.escaped and out.intervened
+    np.testing.assert_allclose(out.u, [*(1.5 * tangent), 0.0], atol=1e-5)
+    assert out.u[1] > 1.3  # away from the wall
+    np.testing.assert_allclose(out.correction_norm, np.linalg.norm(out.u - cmd))
+    # The JAX filter: the same command.
+    with jax.enable_x64(True):
+        jres = jax.jit(lambda o, c, g: filter_from_obs(layout, o, c, g, U_MAX, 0.06, escape))(
+            jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain))
+    np.testing.assert_allclose(np.asarray(jres.u), out.u, atol=1e-9)
+    assert bool(jres.escaped)
+
+
+def test_the_deadlock_escape_changes_nothing_where_no_drone_is_stuck():
+    from aswarm.agents.cbf_filter import filter_from_obs
+
+    # Away from the wall, a cylinder off the drone's line: its row alone slides the drone past it, keeping more
+    # than a quarter of the speed asked (0.69 of 1.5 m/s): not stuck, the plain command.
+    layout, obs = _wall_trap_obs(drone_y_gap=2.0, cylinder_y=0.30)
+    cmd, gain = np.array([1.5, 0.0, 0.0]), np.array(1.0)
+    escape = SafetyFilterConfig(margin=0.1, escape=True)
+    res = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, escape)
+    plain = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, dataclasses.replace(escape, escape=False))
+    assert not res.escaped and res.intervened
+    np.testing.assert_array_equal(res.u, plain.u)
+    # Random scenes: wherever the escape engages, every row still holds as well as without it (slack no larger than
+    # the plain QP's plus round-off), and JAX and numpy agree drone for drone.
+    scene_layout, rng, scene_obs, scene_gain, kw = _obs_scene(3)
+    cmds = rng.uniform(-2.0, 2.0, (2, 3, 3))
+    safety = SafetyFilterConfig(margin=0.1, escape=True, escape_near=1.0, escape_stuck=0.9)
+    res = np_cbf.filter_from_obs(scene_layout, scene_obs, cmds, scene_gain, U_MAX, 0.06, safety, 0.3, 0.05)
+    assert res.escaped.any()
+    with jax.enable_x64(True):
+        jres = jax.jit(lambda o, c, g: filter_from_obs(scene_layout, o, c, g, U_MAX, 0.06, safety, 0.3, 0.05))(
+            jnp.asarray(scene_obs), jnp.asarray(cmds), jnp.asarray(scene_gain))
+    np.testing.assert_array_equal(np.asarray(jres.escaped), res.escaped)
+    np.testing.assert_allclose(np.asarray(jres.u), res.u, atol=1e-9)
+    rows = barriers.obs_rows(scene_layout, scene_obs, scene_gain, **kw)
+    nrm = np.linalg.norm(rows.A, axis=-1)
+    gap = (np.einsum("...mk,...k->...m", rows.A, res.u) - rows.b) / np.maximum(nrm, 1e-9)
+    worst = np.where(rows.mask, -gap, 0.0).max(-1)
+    assert np.all(worst <= np.maximum(res.slack, 0.0) * 10 + 1e-6)
+
+
+def test_the_deadlock_escape_turns_two_drones_meeting_head_on_the_same_way():
+    from aswarm.core.layout import NBR
+
+    # Drone 0 at the origin asked +x at 1.5 m/s, drone 1 0.45 m ahead of it asked -x, both hovering, far from walls.
+    # Each one's neighbour row faces its command squarely and the reciprocal split leaves it only backing off: stuck.
+    # The escape's counterclockwise tangent of the neighbour (nothing else near, no side towards the command) turns
+    # drone 0 to -y and drone 1 to +y: each to its right, so they pass instead of mirroring each other.
+    layout = ObsLayout(num_cylinders=1, num_neighbours=1)
+    obs = np.zeros((2, layout.size))
+    f = layout.own_slices
+    obs[:, f["altitude"]] = 1.0
+    obs[:, f["wall_clearance"]] = 3.0
+    nbr0 = layout.own_dim + layout.num_cylinders * CYL.dim
+    for i, sign in ((0, 1.0), (1, -1.0)):
+        row = np.zeros(NBR.dim)
+        row[NBR.slice("rel_pos")] = [sign * 0.45, 0.0, 0.0]
+        row[NBR.column("present")] = 1.0
+        obs[i, nbr0:nbr0 + NBR.dim] = row
+    cmd = np.array([[1.5, 0.0, 0.0], [-1.5, 0.0, 0.0]])
+    safety = SafetyFilterConfig(margin=0.1, escape=True)
+    res = np_cbf.filter_from_obs(layout, obs, cmd, np.ones(2), U_MAX, 0.06, safety)
+    np.testing.assert_array_equal(res.escaped, [True, True])
+    np.testing.assert_allclose(res.u, [[0.0, -1.5, 0.0], [0.0, 1.5, 0.0]], atol=1e-6)
+    plain = np_cbf.filter_from_obs(layout, obs, cmd, np.ones(2), U_MAX, 0.06, dataclasses.replace(safety, escape=False))
+    # Without it each closes its share of the gap, 0.5 x (0.45 - 0.12 - 0.1) m at gain 1/s, straight on: a pair that
+    # slows to a stop face to face.
+    np.testing.assert_allclose(plain.u, [[0.115, 0.0, 0.0], [-0.115, 0.0, 0.0]], atol=1e-5)

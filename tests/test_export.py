@@ -207,6 +207,8 @@ def test_the_16_drone_policy_ships_trained_on_from_the_4_drone_one():
     actor16, actor4 = jax.tree.leaves(policy16["params"]["actor"]), jax.tree.leaves(policy4["params"]["actor"])
     assert [a.shape for a in actor16] == [a.shape for a in actor4]  # the same observation layout: it flies any size
     assert not all(np.array_equal(a, b) for a, b in zip(actor16, actor4))  # and it trained on
+    # It flies with the deadlock escape (session 19, evaluation only: it trained without it), as does the lab one.
+    assert config16.safety_filter.escape and evaluate.load("pretrained:lab")[0].safety_filter.escape
 
 
 def test_the_lab_policy_ships_for_the_lab_room_as_it_stands():

@@ -36,6 +36,7 @@ class FilterResult:
     correction_norm: jax.Array  # [] ||u − u_nom||
     active: jax.Array  # [m] bool: constraints binding at the solution
     converged: jax.Array  # [] bool: the active-set loop finished within max_iter
+    escaped: jax.Array  # [] bool: the deadlock escape (SafetyFilterConfig.escape) chose the nominal command
 
 
 # ---------------------------------------------------------------- QP solver
@@ -266,7 +267,7 @@ def filter_velocity(u_nom: jax.Array, A: jax.Array, b: jax.Array, mask: jax.Arra
     for pk, us in zip(pick, used):
         active = active | (pk[:m] & us)
     return FilterResult(u=u, slack=slack, intervened=~safe, correction_norm=corr, active=active & ~safe,
-                        converged=converged)
+                        converged=converged, escaped=jnp.zeros((), bool))
 
 
 # ------------------------------------------------------- from observations
@@ -293,13 +294,26 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
             box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
             u = jnp.clip(u, *box)
             braking = (now, command_rate[0], command_rate[1])
-        A, b, mask, _ = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
-                                          gate_half_opening=gate_half_opening, gate_bar=gate_bar,
-                                          floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                                          lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a,
-                                          braking=braking)
-        return filter_velocity(u, A, b, mask, u_max, rho=safety.rho, max_iter=safety.max_iter, tol=safety.tol,
-                               slack_weight=weight, box=box)
+        rows = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
+                                 gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
+                                 neighbour_share=safety.neighbour_share,
+                                 lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a, braking=braking)
+
+        def solve(nominal):
+            return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
+                                   tol=safety.tol, slack_weight=weight, box=box)
+
+        res = solve(u)
+        if not safety.escape:
+            return res
+        nominal, stuck = barriers.escape_from(u, res.u, rows, layout, safety)
+        # The escape's QP only changes where the drone is stuck; u_nom stays the policy's (the correction it is
+        # charged for in training is from what it asked).
+        out = jax.tree.map(lambda e, r: jnp.where(stuck, e, r), solve(nominal), res)
+        sq = jnp.sum((out.u - u) ** 2)
+        corr = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)  # finite gradient at 0
+        return out.replace(intervened=res.intervened | stuck, escaped=stuck,
+                           correction_norm=jnp.where(stuck, corr, res.correction_norm))
 
     # (static choices: a filter without them traces as it did before they existed)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)

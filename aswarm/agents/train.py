@@ -154,7 +154,7 @@ class Agent:
             zeros = jnp.zeros(cmd.shape[:-1])
             return cbf_filter.FilterResult(u=cmd, slack=zeros, intervened=zeros.astype(bool), correction_norm=zeros,
                                            active=jnp.zeros(cmd.shape[:-1] + (0,), bool),
-                                           converged=jnp.ones(cmd.shape[:-1], bool))
+                                           converged=jnp.ones(cmd.shape[:-1], bool), escaped=zeros.astype(bool))
         gain = self.filter_gain(params, obs_norm, obs)
         ec = self.env.config
         layout, rows_obs = (self.env.obs_layout, obs) if filter_obs is None else (self.env.filter_layout, filter_obs)

@@ -49,6 +49,7 @@ class FilterStats(NamedTuple):
 
     intervention_rate: float  # share where the filter changed the command
     infeasible_rate: float  # share where its QP had no command satisfying every row (slack > INFEASIBLE_SLACK)
+    escape_rate: float = 0.0  # share where its deadlock escape chose the command (SafetyFilterConfig.escape)
 
 
 def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -83,7 +84,7 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         ended = jnp.zeros(keys.shape[0], bool)
 
         def body(carry, _):
-            s, rec, ended, interventions, infeasible, flying = carry
+            s, rec, ended, interventions, infeasible, escapes, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
             res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
                                         env.applied_command(s))
@@ -93,24 +94,26 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
             live = ~ended
             interventions = interventions + jnp.sum(res.intervened * live[:, None])
             infeasible = infeasible + jnp.sum((res.slack > INFEASIBLE_SLACK) * live[:, None])
+            escapes = escapes + jnp.sum(res.escaped * live[:, None])
             flying = flying + jnp.sum(live) * env.num_agents
-            return (s, rec, ended | first, interventions, infeasible, flying), None
+            return (s, rec, ended | first, interventions, infeasible, escapes, flying), None
 
-        init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()))
-        (_, rec, ended, interventions, infeasible, flying), _ = jax.lax.scan(body, init, None,
-                                                                            length=env.config.max_steps)
-        return rec, ended, interventions, infeasible, flying
+        init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()), jnp.zeros(()))
+        (_, rec, ended, interventions, infeasible, escapes, flying), _ = jax.lax.scan(body, init, None,
+                                                                                     length=env.config.max_steps)
+        return rec, ended, interventions, infeasible, escapes, flying
 
     if batch <= 0:
         raise ValueError(f"invalid batch={batch}: must be > 0")
     if episodes <= batch:
         def one(params, obs_norm, key):
-            rec, ended, interventions, infeasible, flying = run(params, obs_norm, jax.random.split(key, episodes))
+            rec, ended, interventions, infeasible, escapes, flying = run(params, obs_norm,
+                                                                         jax.random.split(key, episodes))
             per = jnp.maximum(flying, 1.0)
-            return rec, ended, interventions / per, infeasible / per
+            return rec, ended, interventions / per, infeasible / per, escapes / per
 
-        rec, ended, intervention_rate, infeasible_rate = jax.jit(one)(params, obs_norm, key)
-        return rec, ended, FilterStats(intervention_rate, infeasible_rate)
+        rec, ended, intervention_rate, infeasible_rate, escape_rate = jax.jit(one)(params, obs_norm, key)
+        return rec, ended, FilterStats(intervention_rate, infeasible_rate, escape_rate)
     keys = jax.random.split(key, episodes)
     run_batch = jax.jit(run)
     parts = [run_batch(params, obs_norm, keys[i:i + batch]) for i in range(0, episodes, batch)]
@@ -119,8 +122,9 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
     # Counts summed in float64 on the host: float32 stops counting drone-steps exactly past 2**24.
     interventions = sum(float(p[2]) for p in parts)
     infeasible = sum(float(p[3]) for p in parts)
-    flying = max(sum(float(p[4]) for p in parts), 1.0)
-    return rec, ended, FilterStats(interventions / flying, infeasible / flying)
+    escapes = sum(float(p[4]) for p in parts)
+    flying = max(sum(float(p[5]) for p in parts), 1.0)
+    return rec, ended, FilterStats(interventions / flying, infeasible / flying, escapes / flying)
 
 
 def rollout_episodes(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,

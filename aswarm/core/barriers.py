@@ -361,3 +361,60 @@ def _merge_gates(rows: Rows) -> Rows:
     """Rows [..., g, 5] of g gates (A [..., g, 5, 3]) as the rows [..., 5 g] of one gate after the other."""
     lead, k = rows.b.shape[:-2], rows.b.shape[-2] * rows.b.shape[-1]
     return Rows(rows.A.reshape(lead + (k, 3)), *(f.reshape(lead + (k,)) for f in rows[1:]))
+
+
+# m/s: a drone asked for less horizontal speed than this is hovering by choice, not stuck (no deadlock escape).
+ESCAPE_MIN_SPEED = 0.2
+# A hazard blocks the policy's direction where its row's horizontal normal points against it by more than this cosine.
+_ESCAPE_FACING = 0.5
+
+
+def escape_nominal(u_nom, u, rows: Rows, *, stuck: float, near: float, blockers: int | None = None):
+    """The deadlock escape of ``SafetyFilterConfig.escape``: (nominal command [..., 3], stuck [...] bool).
+
+    A drone is stuck where the QP's command ``u`` keeps less than ``stuck`` of the horizontal speed asked for
+    (``u_nom``) along the asked direction while a hazard within ``near`` m (barrier value) faces that direction. For
+    a CBF-QP the point where a cylinder's row and a wall's (or a frame's) meet ahead of the drone is an equilibrium:
+    the policy asks forward, the projection cancels it. The escape asks for the same speed along the blocking
+    hazard's horizontal tangent instead (the vertical part as asked), turning away from the other hazards within
+    ``near`` (the closer, the more they count) or, with none, towards the asked direction, else counterclockwise
+    (two drones meeting head on then both turn the same way). Only the first ``blockers`` rows (None: all) can block:
+    :func:`obs_rows`' cylinders and neighbours, which a drone can go around (a gate's post it must pass beside, on
+    the opening's side). Not stuck: ``u_nom`` unchanged. The caller filters the returned command through the same
+    rows, so every barrier holds whichever nominal it started from.
+    """
+    xp = geometry.namespace(u_nom, rows.A)
+    nrm, a_hat = unit(rows.A)
+    near_rows = rows.mask & (nrm > EPS) & (rows.h < near)
+    a_xy = a_hat[..., :2]
+    a_len = geometry.norm(a_xy)
+    horizontal = a_len > 0.5
+    ask_xy = u_nom[..., :2]
+    ask_speed = geometry.norm(ask_xy)
+    ask_dir = ask_xy / xp.maximum(ask_speed, EPS)[..., None]
+    facing = xp.sum(a_xy * ask_dir[..., None, :], axis=-1) / xp.maximum(a_len, EPS)  # [..., m] cos
+    candidate = near_rows & horizontal & (facing < -_ESCAPE_FACING)
+    if blockers is not None:
+        candidate = candidate & (xp.arange(rows.A.shape[-2]) < blockers)
+    progress = xp.sum(u[..., :2] * ask_dir, axis=-1)
+    is_stuck = (ask_speed > ESCAPE_MIN_SPEED) & (progress < stuck * ask_speed) & xp.any(candidate, axis=-1)
+    # The blocker: the candidate that faces the asked direction most squarely.
+    blocker = xp.argmin(xp.where(candidate, facing, 2.0), axis=-1)
+    pick = xp.arange(rows.A.shape[-2]) == blocker[..., None]  # [..., m]
+    n_b = xp.sum(xp.where(pick[..., None], a_xy, 0.0), axis=-2)
+    n_b = n_b / xp.maximum(geometry.norm(n_b), EPS)[..., None]
+    tangent = xp.stack([-n_b[..., 1], n_b[..., 0]], axis=-1)  # counterclockwise around the blocker
+    weight = xp.where(near_rows & ~pick, (near - rows.h) / near, 0.0)
+    away = xp.sum(xp.sum(weight[..., None] * a_xy, axis=-2) * tangent, axis=-1)
+    towards = xp.sum(ask_dir * tangent, axis=-1)
+    side = xp.where(xp.abs(away) > 1e-3, xp.sign(away), xp.where(xp.abs(towards) > 1e-3, xp.sign(towards), 1.0))
+    escape_xy = (side * ask_speed)[..., None] * tangent
+    escape = xp.concat([escape_xy, u_nom[..., 2:]], axis=-1)
+    return xp.where(is_stuck[..., None], escape, u_nom), is_stuck
+
+
+def escape_from(u_nom, u, rows: Rows, layout, safety):
+    """:func:`escape_nominal` with a :class:`~aswarm.core.safety.SafetyFilterConfig`'s settings for :func:`obs_rows`'
+    rows of ``layout`` (its cylinders and neighbours can block): what both filters call."""
+    return escape_nominal(u_nom, u, rows, stuck=safety.escape_stuck, near=safety.escape_near,
+                          blockers=layout.num_cylinders + layout.num_neighbours)

@@ -54,6 +54,15 @@ class SafetyFilterConfig:
     # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
     # runs and bundles from before it do.
     static_slack: float = 0.1
+    # Deadlock escape: where the QP leaves a drone less than escape_stuck of the speed the policy asked for along
+    # its direction, and a nearby hazard (barrier under escape_near m) faces that direction, the QP is solved again
+    # from the same speed along that hazard's horizontal tangent, on the side away from the other nearby hazards
+    # (aswarm.core.barriers.escape_nominal). Only the nominal command changes, every row still holds: a drone
+    # wedged between a cylinder and a wall (16 drones) or a gate frame (lab) slides around it instead of hovering
+    # there. Off in runs and bundles from before it.
+    escape: bool = False
+    escape_stuck: float = 0.25
+    escape_near: float = 0.3
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
@@ -79,7 +88,7 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("margin", "lookahead_xy", "lookahead_z", "lookahead_scale"):
+        for name in ("margin", "lookahead_xy", "lookahead_z", "lookahead_scale", "escape_stuck", "escape_near"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if not 0 < self.neighbour_share <= 1:
@@ -106,7 +115,7 @@ class SafetyFilterConfig:
 
 
 # The config's true/false fields; every other field is a number.
-_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking")
+_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "escape")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -150,7 +159,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
-              **safety}
+              "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

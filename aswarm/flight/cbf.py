@@ -37,6 +37,7 @@ class FilterResult:
     intervened: np.ndarray  # [...] bool: u_nom violated a row or the box
     correction_norm: np.ndarray  # [...] ||u − u_nom||
     converged: np.ndarray  # [...] bool: the active-set steps finished within the budget
+    escaped: np.ndarray | None = None  # [...] bool: the deadlock escape chose the nominal (filter_from_obs)
 
 
 # ------------------------------------------------------------------ the QP
@@ -475,5 +476,22 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
                              floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
                              lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
-    return filter_velocity(cmd, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
-                           tol=safety.tol, slack_weight=weight, box=box)
+
+    def solve(nominal):
+        return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
+                               tol=safety.tol, slack_weight=weight, box=box)
+
+    res = solve(cmd)
+    if not safety.escape:
+        return res
+    nominal, stuck = barriers.escape_from(np.asarray(cmd, np.float64), res.u, rows, layout, safety)
+    if not stuck.any():
+        return dataclasses.replace(res, escaped=stuck)
+    out = solve(nominal)  # as the JAX filter: the escape's QP where stuck, the correction from what was asked
+
+    def pick(e, r):
+        return np.where(stuck.reshape(stuck.shape + (1,) * (e.ndim - stuck.ndim)), e, r)
+
+    return FilterResult(u=pick(out.u, res.u), slack=pick(out.slack, res.slack), intervened=res.intervened | stuck,
+                        correction_norm=np.where(stuck, np.linalg.norm(out.u - cmd, axis=-1), res.correction_norm),
+                        converged=pick(out.converged, res.converged), escaped=stuck)
