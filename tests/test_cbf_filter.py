@@ -497,6 +497,25 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
     np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
 
 
+def test_gate_rows_cap_a_centred_drone_hand_derived():
+    """A drone centred 0.5 m before an opening (passage +x): every bar's nearest point is c = half_opening + bar/2
+    off its axis, sideways or up or down (the post starts at the bottom edge's middle), so h = √(c² + s²) − k with
+    ∇h = (−s, ±c)/√(c² + s²), and the forward speed the rows allow is γ h √(c² + s²)/s: 0.49 m/s at γ = 1 (README,
+    "Relaxing the gate rows")."""
+    half, bar, r, margin, gamma, s = 0.3, 0.05, 0.06, 0.1, 1.0, 0.5
+    c, k = half + bar / 2, bar / 2 + r + margin
+    rows = barriers.gate_rows(np.array([-s, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]),
+                              np.array(True), gamma, half_opening=half, bar=bar, drone_radius=r, margin=margin)
+    d = math.hypot(c, s)
+    np.testing.assert_allclose(rows.h, d - k)
+    np.testing.assert_allclose(rows.A[:, 0], -s / d)
+    np.testing.assert_allclose(np.abs(rows.A[:, 1:]).sum(-1), c / d)  # sideways or vertical, away from the bar
+    res = single_filter(jnp.array([3.0, 0.0, 0.0]), jnp.asarray(rows.A, jnp.float32), jnp.asarray(rows.b, jnp.float32),
+                        jnp.asarray(rows.mask), 5.0)
+    np.testing.assert_allclose(res.u, [0.4906, 0.0, 0.0], atol=2e-4)
+    np.testing.assert_allclose(0.4906, gamma * (d - k) * d / s, atol=1e-4)
+
+
 def test_braking_row_hand_derived():
     """A still cylinder (look-ahead point at the origin), the drone's look-ahead point 0.5 m from its surface
     (h = 0.5) flying straight at it at s m/s, command limit 3 m/s², dt 0.04 s: B = √(2·3·0.5) − s = √3 − s and the
