@@ -8,8 +8,9 @@
 
 A cell is a scenario with env overrides, flown by the policy of the kind it needs (``--policy KIND=RUN``, or
 ``--policy CELL=RUN`` for one cell; by default the shipped ones: ``pretrained`` for the race and its swarms,
-``pretrained:dynamic``, ``pretrained:obstacles`` for ``obstacles`` and its swarms, ``pretrained:race-moving``,
-``pretrained:lab``). A cell whose policy was not given is
+``pretrained:dynamic``, ``pretrained:obstacles`` for ``obstacles``, ``pretrained:obstacles16`` (trained at 16
+drones, with the deadlock escape) for its swarms, ``pretrained:race-moving``, ``pretrained:lab``). A cell whose
+policy was not given is
 listed as not run; one whose policy observes another layout (other numbers of cylinders or neighbours) is listed
 with the reason. Dynamic cells move exactly k of the ``dynamic`` preset's 3 cylinder slots (``min_moving =
 max_moving = k``; the others are absent), so one policy trained on the preset (1 to 3 moving) flies all six. "fast"
@@ -72,7 +73,7 @@ SHIPPED = "pretrained"
 # The 4-drone policies observe 3 other drones: they fly the swarm cells too (the obstacles one better than a policy
 # trained at 16 drones, README).
 DEFAULT_POLICIES = {"race": SHIPPED, "race-swarm": SHIPPED, "dynamic": "pretrained:dynamic",
-                    "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles",
+                    "obstacles": "pretrained:obstacles", "obstacles-swarm": "pretrained:obstacles16",
                     "race-moving": "pretrained:race-moving", "lab": "pretrained:lab"}
 # A policy's kind: what it must have been trained on to fit its cells' observation layout.
 KINDS = {
@@ -81,9 +82,9 @@ KINDS = {
     "race-swarm": f"a race policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env max_neighbours="
                   f"{SWARM_NEIGHBOURS}), so it flies 8 and 16",
     "obstacles": "an obstacles policy: 4 drones",
-    "obstacles-swarm": f"an obstacles policy observing {SWARM_NEIGHBOURS} other drones (4 drones, or --env "
-                       f"max_neighbours={SWARM_NEIGHBOURS}); SITL flies obstacles-16 from a bundle exported for 16 "
-                       "drones (aswarm export --env)",
+    "obstacles-swarm": f"an obstacles policy observing {SWARM_NEIGHBOURS} other drones (default: "
+                       f"pretrained:obstacles16; or 4 drones with --env max_neighbours={SWARM_NEIGHBOURS}); SITL "
+                       "flies obstacles-16 from a bundle exported for 16 drones (aswarm export --env)",
     "lab": "a lab policy: 2 drones, 3 cylinders (default: pretrained:lab)",
     "dynamic": "a dynamic policy: trained on the dynamic preset (3 cylinder slots, 1 to 3 of them moving)",
 }
