@@ -10,11 +10,12 @@ flies (after the command limit), the filter's slack and gain, the smallest barri
 filter's rows (``core.barriers.obs_rows``: taken at the look-ahead point) and the true gaps to each kind of hazard.
 
 It prints one line per collision: kind, time, the group's smallest row value and the true gap over the last
-``--window`` steps, how often the QP was infeasible there, and how far the flown command lagged the filter's. A
-collision whose rows stayed positive to the end was not seen by the filter's model (the look-ahead point kept clear
-while the drone did not); one after slack was spent came from an infeasible QP. ``summary.json`` holds the lines,
-``traces.npz`` the whole traces. Pass 2 runs each episode in a batch of its own; where a replay does not collide
-again (another batch size may fuse the program differently), the line says so.
+``--window`` steps, how often the QP was infeasible there, how far the flown command lagged the filter's, the drone's
+largest tilt there and its world's rotor time constant. A collision whose rows stayed positive to the end was not
+seen by the filter's model (the look-ahead point kept clear while the drone did not); one after slack was spent came
+from an infeasible QP; one with a tilt far past the controller's 20° is the drone losing its attitude.
+``summary.json`` holds the lines, ``traces.npz`` the whole traces. Pass 2 runs each episode in a batch of its own;
+where a replay does not collide again (another batch size may fuse the program differently), the line says so.
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
             h = jnp.where(rows.mask, rows.h, geo.FAR)
             h_groups = jnp.stack([jnp.min(h[:, a:b], -1, initial=geo.FAR) for a, b in zip(bounds[:-1], bounds[1:])], -1)
             n2 = env.step(s, res.u)
-            pos = drone_state(n2.data, cfg.num_agents).pos
+            drone = drone_state(n2.data, cfg.num_agents)
+            pos = drone.pos
             cyl_pos, _ = cylinders_at(n2.layout, n2.data.time)
             gaps = jnp.stack([
                 jnp.min(geo.cylinder_clearance(pos, cyl_pos, n2.layout.cyl_radius, n2.layout.cyl_height,
@@ -118,20 +120,24 @@ def main(argv: list[str] | None = None) -> int:
                 jnp.min(geo.drone_clearance(pos, jnp.ones(cfg.num_agents, bool), r), -1, initial=geo.FAR),
                 jnp.min(geo.gate_clearance(pos, frames, cfg.gate_bar, r), -1, initial=geo.FAR),
                 pos[:, 2] - r], -1)
-            out = {"pos": pos, "vel": drone_state(n2.data, cfg.num_agents).vel, "cmd": cmd, "u": res.u,
+            x, y = drone.quat[:, 1], drone.quat[:, 2]  # body z against world z: 1 - 2(x² + y²)
+            tilt = jnp.degrees(jnp.arccos(jnp.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+            out = {"pos": pos, "vel": drone.vel, "tilt": tilt, "cmd": cmd, "u": res.u,
                    "flown": env.applied_command(n2), "slack": res.slack, "gain": gain, "h": h_groups, "gaps": gaps,
                    "collided": n2.tracker.collided, "kind": n2.tracker.collision_kind, "target": n2.tracker.target,
                    "finished": n2.tracker.finished}
             return n2, out
 
-        return jax.lax.scan(body, state, None, length=cfg.max_steps)[1]
+        drawn = state.onboard.params  # this world's rotor time constant (randomised per world), None if not drawn
+        rotor_lag = jnp.asarray(cfg.cf.motor_tau if drawn is None else drawn.cf.motor_tau)
+        return jax.lax.scan(body, state, None, length=cfg.max_steps)[1], rotor_lag
 
     run = jax.jit(trace)
     keys = jax.random.split(key, args.episodes)
     lines, traces = [], {}
     names = [g for g, _ in groups]
     for i in hit:
-        tr = jax.tree.map(np.asarray, run(keys[i]))
+        tr, rotor_lag = jax.tree.map(np.asarray, run(keys[i]))
         collided = tr["collided"]
         if not collided.any():
             lines.append({"episode": int(i), "replayed": False})
@@ -154,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
                 "slack_max": round(float(tr["slack"][w, drone].max()), 4),
                 "intervened_steps": int(np.sum(np.linalg.norm(tr["u"][w, drone] - tr["cmd"][w, drone], axis=-1)
                                                > 1e-3)),
-                "flown_lag_max": round(float(lag.max()), 3), "gain_last": round(float(tr["gain"][step, drone]), 3)}
+                "flown_lag_max": round(float(lag.max()), 3), "gain_last": round(float(tr["gain"][step, drone]), 3),
+                "tilt_max_deg": round(float(tr["tilt"][w, drone].max()), 1), "rotor_lag_s": round(float(rotor_lag), 4)}
         lines.append(line)
         traces.update({f"{i}/{k}": v[:step + 1] for k, v in tr.items()})
         print(json.dumps(line), flush=True)
