@@ -2,11 +2,13 @@
 
     python experiments/mellinger_rotor_lag.py --worlds 16 --steps 100
     python experiments/mellinger_rotor_lag.py --controllers pid --taus 0.1 0.136 0.17 0.2 0.25 --worlds 64 --steps 150
+    python experiments/mellinger_rotor_lag.py --controllers pid --spin-down identified symmetric --taus 0.136 0.2 0.25
 
 Race env (randomised drone, 4 drones), Gaussian velocity commands of standard deviation ``--std`` m/s (the trainer's
 initial exploration), a new one every policy step, through the command acceleration limit. Prints, per controller
 and rotor time constant (the nominal one: the randomisation scales it by 0.7-1.3 per world), the worlds in which a
-drone hit the floor within ``--steps`` policy steps.
+drone hit the floor within ``--steps`` policy steps. ``--spin-down identified`` slows the rotors down as the
+identified ones do (``cf.motor_tau_down``, scaled with the time constant), ``symmetric`` with the time constant.
 """
 
 from __future__ import annotations
@@ -21,9 +23,12 @@ from aswarm import envs
 from aswarm.envs.collisions import FLOOR
 
 
-def floor_worlds(controller: str, motor_tau: float, worlds: int, steps: int, std: float, seed: int) -> int:
+def floor_worlds(controller: str, motor_tau: float, worlds: int, steps: int, std: float, seed: int,
+                 spin_down: str = "identified") -> int:
     base = envs.preset("race")
-    env = envs.make("race", controller=controller, cf=dataclasses.replace(base.cf, motor_tau=motor_tau))
+    down = base.cf.motor_tau_down * motor_tau / base.cf.motor_tau if spin_down == "identified" else 0.0
+    env = envs.make("race", controller=controller,
+                    cf=dataclasses.replace(base.cf, motor_tau=motor_tau, motor_tau_down=down))
     n = env.num_agents
 
     @jax.jit
@@ -48,13 +53,15 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--taus", type=float, nargs="+", default=[0.136, 0.1, 0.07, 0.05, 0.03])
     p.add_argument("--controllers", nargs="+", choices=("pid", "mellinger"), default=["pid", "mellinger"])
+    p.add_argument("--spin-down", nargs="+", choices=("identified", "symmetric"), default=["identified"])
     args = p.parse_args()
     names = {"pid": "controller_pid", "mellinger": "Mellinger"}
-    print("| rotor time constant (s) | " + " | ".join(f"{names[c]}: worlds with a floor hit (of {args.worlds})"
-                                                      for c in args.controllers) + " |")
-    print("|---:|" + "---:|" * len(args.controllers))
+    cols = [(c, d) for c in args.controllers for d in args.spin_down]
+    print("| rotor time constant (s) | " + " | ".join(
+        f"{names[c]}, {d} spin-down: worlds with a floor hit (of {args.worlds})" for c, d in cols) + " |")
+    print("|---:|" + "---:|" * len(cols))
     for tau in args.taus:
-        row = [floor_worlds(c, tau, args.worlds, args.steps, args.std, args.seed) for c in args.controllers]
+        row = [floor_worlds(c, tau, args.worlds, args.steps, args.std, args.seed, d) for c, d in cols]
         print(f"| {tau:g} | " + " | ".join(str(x) for x in row) + " |", flush=True)
 
 

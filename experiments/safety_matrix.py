@@ -98,6 +98,14 @@ class Cell:
     overrides: tuple[str, ...] = ()  # env overrides, FIELD=VALUE
     episodes: int = CELL_EPISODES  # of the full run
     headline: bool = False  # also flown in SITL
+    # Overrides that hold fields the cell is defined by at the values every cell cached before them was flown
+    # with, so a policy trained on a wider range (faster cylinders) flies the cell as defined: applied, not part
+    # of the cache key, which they would change for no change in what is flown.
+    pins: tuple[str, ...] = ()
+
+    @property
+    def flown(self) -> list[str]:
+        return list(self.overrides + self.pins)
 
 
 def _moving(k: int, fast: bool) -> tuple[str, ...]:
@@ -113,14 +121,19 @@ def _drones(n: int) -> tuple[str, ...]:
     return (f"num_agents={n}", f"max_neighbours={SWARM_NEIGHBOURS}", f"filter_neighbours={EnvConfig.filter_neighbours}")
 
 
+# Moving cylinders at the one speed moving_period gives (what a run trained with moving_speed_scale stores is not
+# the cell's).
+ONE_SPEED = ("moving_speed_scale=1.0,1.0",)
+
 CELLS: tuple[Cell, ...] = (
     Cell("race", "race", "race", episodes=HEADLINE_EPISODES, headline=True),
     Cell("obstacles", "obstacles", "obstacles"),
     Cell("lab", "lab", "lab"),
     *(Cell(f"dynamic-{k}", "dynamic", "dynamic", _moving(k, False),
-           HEADLINE_EPISODES if k == 3 else CELL_EPISODES, headline=k == 3) for k in DYNAMIC_MOVING),
-    *(Cell(f"dynamic-{k}-fast", "dynamic", "dynamic", _moving(k, True)) for k in DYNAMIC_MOVING),
-    Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}", "num_moving=2") + _moving(2, False)),
+           HEADLINE_EPISODES if k == 3 else CELL_EPISODES, headline=k == 3, pins=ONE_SPEED) for k in DYNAMIC_MOVING),
+    *(Cell(f"dynamic-{k}-fast", "dynamic", "dynamic", _moving(k, True), pins=ONE_SPEED) for k in DYNAMIC_MOVING),
+    Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}", "num_moving=2") + _moving(2, False),
+         pins=ONE_SPEED),
     Cell("race-8", "race-swarm", "race", _drones(8), LARGE_EPISODES),
     Cell("race-16", "race-swarm", "race", _drones(16), LARGEST_EPISODES),
     Cell("obstacles-8", "obstacles-swarm", "obstacles", _drones(8)),
@@ -263,12 +276,12 @@ def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int
     t0 = time.perf_counter()
     try:
         if mode == "sim":
-            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, list(cell.overrides))
+            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, cell.flown)
         else:
             swarm = [o for o in cell.overrides if o.split("=")[0] in SWARM_FIELDS]
             bundle = bundle_for(f"{key}-{cell.name}" if swarm else key, run, out, swarm)
             result = sitl.run_sitl(bundle, cell.scenario, episodes, seed, noise=SITL_NOISE_M,
-                                   latency_ms=SITL_LATENCY_MS, env_overrides=list(cell.overrides))
+                                   latency_ms=SITL_LATENCY_MS, env_overrides=cell.flown)
     except ValueError as e:  # above all: the policy's observation layout (or the bundle's swarm) is not the cell's
         return {"status": "not run", "reason": f"the policy cannot fly it: {one_line(e)}", "result": None}
     return {**row, "result": result, "wall_s": time.perf_counter() - t0}

@@ -192,6 +192,20 @@ def test_max_moving_fixes_how_many_of_the_slots_move():
         np.testing.assert_array_equal(moving_counts(min_moving=k, max_moving=k), k)
 
 
+def test_moving_speed_scale_draws_each_moving_cylinders_speed():
+    base = _layouts(envs.make("dynamic"))
+    fast = _layouts(envs.make("dynamic", moving_speed_scale=(1.0, 1.5)))
+    omega0 = 2 * np.pi / 4.0  # the default period, 4 s
+    np.testing.assert_allclose(np.asarray(base.cyl_omega), omega0, rtol=1e-6)  # (1, 1): one speed, as always
+    w = np.asarray(fast.cyl_omega) / omega0
+    assert w.min() >= 1.0 - 1e-6 and w.max() <= 1.5 + 1e-6 and np.std(w) > 0.05  # spread over the range
+    # Only the speeds differ: the same cylinders, where they were, at the same phases.
+    np.testing.assert_array_equal(np.asarray(base.cyl_center), np.asarray(fast.cyl_center))
+    np.testing.assert_array_equal(np.asarray(base.cyl_phase), np.asarray(fast.cyl_phase))
+    with pytest.raises(ValueError, match=r"invalid moving_speed_scale=\(1.5, 1.0\): allowed: LOW,HIGH"):
+        envs.make("dynamic", moving_speed_scale=(1.5, 1.0))
+
+
 def test_reaching_the_goal_finishes_with_success_metrics():
     env = envs.make("hover", layout_jitter=0.0)
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))

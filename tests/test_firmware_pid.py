@@ -107,6 +107,29 @@ def test_rotor_lag_follows_the_analytic_first_order_response():
     np.testing.assert_allclose(rpm, target - 10000 * math.exp(-0.1 / tau), rtol=1e-5)
 
 
+def test_rotors_slow_down_quadratically_as_identified():
+    tau, tau_down, hover, dt = 0.136, 0.108, 14468.4, 0.002
+
+    def run(rpm, target, steps):
+        rpm = jnp.asarray(rpm)
+        for _ in range(steps):
+            rpm = rotor_lag(rpm, jnp.asarray(target), tau, dt, tau_down, hover)
+        return float(rpm)
+
+    # A motor cut from hover: d rpm/dt = -k rpm^2 gives rpm0 / (1 + k rpm0 t), k rpm0 = 1 / (2 tau_down) about
+    # hover: after 0.1 s 14468.4 / (1 + 0.1 / 0.216) = 9889.8 RPM (the first-order lag would leave 6944).
+    np.testing.assert_allclose(run(hover, 0.0, 50), hover / (1 + 0.1 / (2 * tau_down)), rtol=1e-5)
+    # Asked 100 RPM below hover it closes the gap with the time constant tau_down (linearised about hover):
+    # 100 exp(-0.05 / 0.108) = 62.9 RPM left after 0.05 s.
+    np.testing.assert_allclose(run(hover, hover - 100, 25) - (hover - 100), 100 * math.exp(-0.05 / tau_down),
+                               rtol=5e-3)
+    # Exact: one step of 0.1 s lands where 50 of 2 ms do, from far above the target too.
+    one = float(rotor_lag(jnp.asarray(20000.0), jnp.asarray(5000.0), tau, 0.1, tau_down, hover))
+    np.testing.assert_allclose(run(20000.0, 5000.0, 50), one, rtol=1e-5)
+    # Speeding up is the first-order lag, as without tau_down.
+    np.testing.assert_allclose(run(10000.0, 20000.0, 50), 20000 - 10000 * math.exp(-0.1 / tau), rtol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def pid_drone():
     return envs.preset("hover")

@@ -111,6 +111,9 @@ def test_cells_of_the_issue():
     assert period * 1.5 == pytest.approx(mod.EnvConfig.moving_period)
     assert by["race-moving2"].overrides == ("num_obstacles=8", "num_moving=2", "min_moving=2", "max_moving=2")
     assert by["obstacles-64"].overrides == ("num_agents=64", "max_neighbours=3", "filter_neighbours=8")
+    # Every cell with moving cylinders flies them at its one speed, whatever range the policy trained on.
+    moving = {n for n, c in by.items() if any(o.startswith("max_moving=") for o in c.overrides)}
+    assert moving == {n for n, c in by.items() if "moving_speed_scale=1.0,1.0" in c.flown} and len(moving) == 7
     # --episodes sets every cell's, but the largest swarms keep their fewer.
     got = [mod.episodes_of(by[c], False, 2000) for c in ("race", "race-8", "obstacles-32", "obstacles-64")]
     assert got == [2000, 1000, 1000, 500]

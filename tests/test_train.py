@@ -302,6 +302,10 @@ def test_run_loads_its_env_as_stored_not_rebuilt_from_the_preset(tmp_path, monke
             assert shipped.env.command_accel_limit == 0.0
     fw = checkpoint.load_config(evaluate.PRETRAINED)
     assert (fw.env.controller, fw.env.command_accel_limit, fw.safety_filter.lookahead_scale) == ("pid", 3.0, 0.9)
+    # Fields added after it (session 22) read back as the drone and scene it was trained on: rotors that slow
+    # down with the same time constant as they speed up, cylinders at one speed.
+    assert fw.env.cf.motor_tau_down == 0.0 and fw.env.moving_speed_scale == (1.0, 1.0)
+    assert envs.EnvConfig().cf.motor_tau_down == 0.108
 
 
 def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):

@@ -58,6 +58,9 @@ class EnvConfig:
     layout_draws: int = 16
     moving_amplitude: float = 0.8
     moving_period: float = 4.0  # s
+    # Each moving cylinder's speed, per episode, a uniform draw from this range times the one moving_period
+    # gives (the same amplitude swept faster): training among faster cylinders than the default.
+    moving_speed_scale: tuple[float, float] = (1.0, 1.0)
     goal_radius: float = 0.2
     start_spacing: float = 0.5
     # Neighbours in each drone's observation. 0: every other drone, in index order (the row grows with n, and
@@ -154,7 +157,8 @@ class EnvConfig:
 
 
 # Fields of cf., gains. and pid. where 0 means "left out" rather than nonsense.
-MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.", "rate_kd"), ("pid.", "vel_xy_ki"),
+MAY_BE_ZERO = {("cf.", "motor_tau"), ("cf.", "motor_tau_down"),
+               ("cf.", "drag"), ("pid.", "yaw_kd"), ("pid.", "rate_kd"), ("pid.", "vel_xy_ki"),
                ("pid.", "vel_z_ki"), ("pid.", "att_ki"), ("pid.", "yaw_ki"), ("pid.", "rate_ki"),
                ("pid.", "yaw_rate_ki"), ("mellinger.", "ki_xy"), ("mellinger.", "ki_z"), ("mellinger.", "ki_m_xy"),
                ("mellinger.", "ki_m_z"), ("mellinger.", "kd_omega_rp")}
@@ -175,7 +179,8 @@ def legacy_drone_stored() -> dict:
 # EnvConfig fields added after issue #12 (nested ones dotted), as a stored env without them was.
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
                "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash,
-               "max_moving": -1, "filter_neighbours": 0}
+               "max_moving": -1, "filter_neighbours": 0, "cf.motor_tau_down": 0.0,
+               "moving_speed_scale": (1.0, 1.0)}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -285,6 +290,9 @@ def validate(c: EnvConfig) -> None:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.start_interval < 0:
         _fail("start_interval", c.start_interval, "must be >= 0")
+    lo, hi = c.moving_speed_scale
+    if not 0 < lo <= hi:
+        _fail("moving_speed_scale", c.moving_speed_scale, "allowed: LOW,HIGH with 0 < LOW <= HIGH (1,1: one speed)")
     if c.layout_jitter < 0:
         _fail("layout_jitter", c.layout_jitter, "must be >= 0")
     if c.min_obstacle_gap < 0:

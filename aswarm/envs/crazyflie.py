@@ -36,6 +36,11 @@ class CrazyflieParams:
     # 1 / 7.356, the spin-up coefficient the crazyflow team identified for the Crazyflie 2.x (package
     # `drone-models` 0.1.0, params.toml [cf2x_L250] rotor_dyn_coef[0], d rpm/dt = k (cmd - rpm)).
     motor_tau: float = 0.136
+    # Slowing down, the same identification finds the rotors faster and quadratic in speed: rotor_dyn_coef[3]
+    # = 2.444e-4 / (s RPM) in d rpm/dt = k (cmd^2 - rpm^2), a time constant 1 / (2 k rpm) = 0.108 s about its
+    # hover speed (18,968 RPM for its 31.9 g drone); the lag keeps that time constant about this drone's hover
+    # speed. 0: slowing down follows motor_tau as well (every run before session 22).
+    motor_tau_down: float = 0.108
     # Linear rotor drag (gym-pybullet-drones' DRAG): F = -drag * v_body * sum(2 pi rpm / 60), per body axis
     # (N s / m per rad/s). 0 leaves it out; gym-pybullet-drones' values are (9.1785e-7, 9.1785e-7, 10.311e-7).
     drag: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -74,10 +74,29 @@ def motor_wrench(rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> jax.Array
     return wrench.at[:, 3].multiply(cf.km_scale)  # exact where km_scale is 1 (every undrawn drone)
 
 
-def rotor_lag(rpm: jax.Array, target: jax.Array, tau: jax.Array, dt: float) -> jax.Array:
-    """Rotor speeds after ``dt`` s of the first-order lag ``d rpm / dt = (target - rpm) / tau`` with ``target``
-    held: the exact solution, so the step size changes nothing but where the response is sampled."""
-    return target + (rpm - target) * jnp.exp(-dt / tau)
+def rotor_lag(rpm: jax.Array, target: jax.Array, tau: jax.Array, dt: float, tau_down: jax.Array | None = None,
+              hover_rpm: float = 0.0) -> jax.Array:
+    """Rotor speeds after ``dt`` s with ``target`` held: the exact solutions, so the step size changes nothing
+    but where the response is sampled.
+
+    Speeding up (and, without ``tau_down``, slowing down too) follows the first-order lag
+    ``d rpm / dt = (target - rpm) / tau``. With ``tau_down`` a rotor slows down as the identified Crazyflie
+    rotors do, ``d rpm / dt = k (target^2 - rpm^2)``: the propeller's drag torque, quadratic in its speed, brakes
+    it, so it slows fastest from high speed; ``k = 1 / (2 hover_rpm tau_down)`` makes ``tau_down`` its time
+    constant about hover."""
+    up = target + (rpm - target) * jnp.exp(-dt / tau)
+    if tau_down is None:
+        return up
+    k = 1.0 / (2.0 * hover_rpm * tau_down)
+    # From rpm > target: rpm(t) - target = 2 target (rpm - target) e / (rpm (1 - e) + target (1 + e)), with
+    # e = exp(-2 k target t), divided through by target so that target = 0 (a motor cut) is the limit
+    # rpm / (1 + k rpm t) rather than 0 / 0.
+    x = 2.0 * k * target * dt
+    e = jnp.exp(-x)
+    xs = jnp.maximum(x, 1e-6)
+    one_minus_e_per_target = 2.0 * k * dt * jnp.where(x > 1e-6, -jnp.expm1(-xs) / xs, 1.0 - 0.5 * x)
+    down = target + 2.0 * (rpm - target) * e / (rpm * one_minus_e_per_target + 1.0 + e)
+    return jnp.where(target >= rpm, up, down)
 
 
 def rotor_drag(quat: jax.Array, vel: jax.Array, rpm: jax.Array, cf: DroneParams) -> jax.Array:

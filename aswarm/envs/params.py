@@ -52,6 +52,7 @@ class DroneParams:
     max_rpm: jax.Array  # [] derived: sqrt(thrust_to_weight * weight / (4 kf))
     max_motor_thrust: jax.Array  # [] N, derived: kf * max_rpm^2
     motor_tau: jax.Array  # [] s, rotor time constant (used where the config's cf.motor_tau > 0)
+    motor_tau_down: jax.Array  # [] s, slowing down about hover (used where the config's cf.motor_tau_down > 0)
     km_scale: jax.Array  # [] the yaw-torque constant over the config's (domain randomisation)
     drag: jax.Array  # [3] linear rotor drag (used where the config's cf.drag is not zero)
     # Not data (params that differ in them do not fit the env): gravity is the MJX model's opt.gravity, and the
@@ -64,7 +65,8 @@ class DroneParams:
     @classmethod
     def from_crazyflie(cls, cf: CrazyflieParams) -> DroneParams:
         return cls(mass=_f32(cf.mass), inertia=_f32(cf.inertia), kf=_f32(cf.kf), max_rpm=_f32(cf.max_rpm),
-                   max_motor_thrust=_f32(cf.max_motor_thrust), motor_tau=_f32(cf.motor_tau), km_scale=_f32(1.0),
+                   max_motor_thrust=_f32(cf.max_motor_thrust), motor_tau=_f32(cf.motor_tau),
+                   motor_tau_down=_f32(cf.motor_tau_down), km_scale=_f32(1.0),
                    drag=_f32(cf.drag), gravity=float(cf.gravity),
                    mixer=_matrix(cf.mixer()), inv_mixer=_matrix(np.linalg.inv(cf.mixer())))
 

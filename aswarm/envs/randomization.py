@@ -94,12 +94,13 @@ def sample(key: jax.Array, nominal, r: Randomization, ticks_per_step: int):
     mass = _uniform(keys[0], r.mass)
     kf = _uniform(keys[1], r.thrust_constant)
     cf = nominal.cf
+    lag = _uniform(keys[3], r.motor_tau)  # one rotor, slower or faster both ways
     cf = cf.replace(
         mass=cf.mass * mass, inertia=cf.inertia * mass, kf=cf.kf * kf,
         # The speed limit of a motor is its own; its thrust there scales with kf.
         max_motor_thrust=cf.max_motor_thrust * kf,
         km_scale=cf.km_scale * _uniform(keys[2], r.torque_constant),
-        motor_tau=cf.motor_tau * _uniform(keys[3], r.motor_tau),
+        motor_tau=cf.motor_tau * lag, motor_tau_down=cf.motor_tau_down * lag,
     )
     gain = _uniform(keys[4], r.gains)
     pid = nominal.pid.replace(**{name: getattr(nominal.pid, name) * gain for name in GAIN_FIELDS})

@@ -222,6 +222,9 @@ def sample_layout(key: jax.Array, cfg: EnvConfig, geo: Geometry, moving_amplitud
     n_moving = jax.random.randint(k_count, (), cfg.min_moving, cfg.most_moving + 1)
     present = static | (jnp.arange(m) - cfg.num_obstacles < n_moving)
     omega = jnp.where(static, 0.0, moving_omega)
+    if tuple(cfg.moving_speed_scale) != (1.0, 1.0):  # static: the default draws nothing (the layouts it always had)
+        lo, hi = cfg.moving_speed_scale
+        omega = omega * jax.random.uniform(jax.random.fold_in(k_phase, 1), (m,), minval=lo, maxval=hi)
 
     # Starts: behind the start point (a column or a grid), facing the direction of travel.
     heading = jnp.asarray(geo.start_heading)

@@ -135,6 +135,8 @@ class SwarmEnv:
         self.default_params = EnvParams.from_config(config)
         self.randomize = config.randomize.enabled
         self.lag = config.cf.motor_tau > 0
+        self.lag_down = config.cf.motor_tau_down > 0
+        self._hover_rpm_nominal = float(config.cf.hover_rpm)
         self.drag = any(c > 0 for c in config.cf.drag)
         self.ticks = config.substeps // config.ctrl_every  # onboard-controller ticks per policy step
         # The rotor speed the firmware's thrust map commands, per sqrt(thrust): the nominal drone's kf.
@@ -236,7 +238,11 @@ class SwarmEnv:
         dt_ctrl, dt_sim = 1.0 / cfg.ctrl_freq, 1.0 / cfg.sim_freq
 
         def physics(d, rpm_cmd, rpm):
-            rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim) if self.lag else rpm_cmd
+            if self.lag:
+                down = p.cf.motor_tau_down if self.lag_down else None
+                rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim, down, self._hover_rpm_nominal)
+            else:
+                rpm = rpm_cmd
             return physics_step(self.mjx_model, d, rpm, p.cf, self.drag), rpm
 
         if ob.mellinger is not None:

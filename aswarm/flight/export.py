@@ -81,8 +81,8 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
                       episode_seconds=ec.episode_seconds, safety_margin=ec.safety_margin,
                       # m/s²: how hard the moving cylinders the policy trained among could accelerate (their
                       # amplitude ω²; 0 without); give moving obstacles' bounds in flight as Obstacles(accel=...)
-                      moving_accel_bound=float(cylinder_accel_bound(ec.moving_amplitude,
-                                                                    2 * math.pi / ec.moving_period))
+                      moving_accel_bound=float(cylinder_accel_bound(
+                          ec.moving_amplitude, 2 * math.pi / ec.moving_period * max(ec.moving_speed_scale)))
                       if ec.num_moving else 0.0)
     course = {"gates": [[*map(float, p), float(y)] for p, y in zip(geo.gate_pos, geo.gate_yaw)],
               "gates_meaning": "nominal (x, y, z) m and yaw rad of each gate in order; episodes jitter them",
@@ -109,7 +109,8 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     # for Mellinger full states along the integrated command (core.command); the geometric controller has no
     # firmware counterpart. Its measured velocity lag is the flight runtime's model of it (velocity="model").
     drone_lag = characterise(ec)
-    drone = {"controller": ec.controller, "motor_tau": ec.cf.motor_tau, "mass": ec.cf.mass,
+    drone = {"controller": ec.controller, "motor_tau": ec.cf.motor_tau,
+             "motor_tau_down": ec.cf.motor_tau_down, "mass": ec.cf.mass,
              "velocity_lag": [drone_lag.lag_xy, drone_lag.lag_z],
              "firmware_params": {"stabilizer.controller": FIRMWARE_CONTROLLER[ec.controller]}
              if ec.controller in FIRMWARE_CONTROLLER else {},
