@@ -16,6 +16,7 @@ from aswarm import envs
 from aswarm.analysis import step_response
 from aswarm.envs import firmware_pid as fw
 from aswarm.envs.config import LEGACY_DRONE
+from aswarm.envs.crazyflie import SPIN_DOWN_REFERENCE_RPM
 from aswarm.envs.dynamics import rotor_lag
 from aswarm.envs.randomization import OFF, Randomization
 
@@ -108,7 +109,8 @@ def test_rotor_lag_follows_the_analytic_first_order_response():
 
 
 def test_rotors_slow_down_quadratically_as_identified():
-    tau, tau_down, hover, dt = 0.136, 0.108, 14468.4, 0.002
+    tau, tau_down, hover, dt = 0.136, 0.108, SPIN_DOWN_REFERENCE_RPM, 0.002
+    assert hover == pytest.approx(14468.4, abs=0.1)  # sqrt(0.027 * 9.8 / (4 * 3.16e-10)): the default's hover
 
     def run(rpm, target, steps):
         rpm = jnp.asarray(rpm)

@@ -38,8 +38,8 @@ class CrazyflieParams:
     motor_tau: float = 0.136
     # Slowing down, the same identification finds the rotors faster and quadratic in speed: rotor_dyn_coef[3]
     # = 2.444e-4 / (s RPM) in d rpm/dt = k (cmd^2 - rpm^2), a time constant 1 / (2 k rpm) = 0.108 s about its
-    # hover speed (18,968 RPM for its 31.9 g drone); the lag keeps that time constant about this drone's hover
-    # speed. 0: slowing down follows motor_tau as well (every run before session 22).
+    # hover speed (18,968 RPM for its 31.9 g drone); here the time constant about SPIN_DOWN_REFERENCE_RPM.
+    # 0: slowing down follows motor_tau as well (every run before session 22).
     motor_tau_down: float = 0.108
     # Linear rotor drag (gym-pybullet-drones' DRAG): F = -drag * v_body * sum(2 pi rpm / 60), per body axis
     # (N s / m per rad/s). 0 leaves it out; gym-pybullet-drones' values are (9.1785e-7, 9.1785e-7, 10.311e-7).
@@ -84,3 +84,9 @@ class CrazyflieParams:
             -xy[:, 0],  # tau_y = -sum(x_i f_i)
             -self.motor_spin * self.km / self.kf,
         ])
+
+
+# The speed cf.motor_tau_down is the spin-down time constant about: the default drone's hover speed (14,468 RPM). A
+# constant, not the configured drone's hover speed, because the braking is the rotor's own: a heavier drone (or a
+# randomised mass) hovers at another speed with the same rotors.
+SPIN_DOWN_REFERENCE_RPM: float = CrazyflieParams().hover_rpm

@@ -75,19 +75,19 @@ def motor_wrench(rpm: jax.Array, cf: DroneParams | CrazyflieParams) -> jax.Array
 
 
 def rotor_lag(rpm: jax.Array, target: jax.Array, tau: jax.Array, dt: float, tau_down: jax.Array | None = None,
-              hover_rpm: float = 0.0) -> jax.Array:
+              reference_rpm: float = 0.0) -> jax.Array:
     """Rotor speeds after ``dt`` s with ``target`` held: the exact solutions, so the step size changes nothing
     but where the response is sampled.
 
     Speeding up (and, without ``tau_down``, slowing down too) follows the first-order lag
     ``d rpm / dt = (target - rpm) / tau``. With ``tau_down`` a rotor slows down as the identified Crazyflie
     rotors do, ``d rpm / dt = k (target^2 - rpm^2)``: the propeller's drag torque, quadratic in its speed, brakes
-    it, so it slows fastest from high speed; ``k = 1 / (2 hover_rpm tau_down)`` makes ``tau_down`` its time
-    constant about hover."""
+    it, so it slows fastest from high speed; ``k = 1 / (2 reference_rpm tau_down)`` makes ``tau_down`` its time
+    constant about ``reference_rpm``."""
     up = target + (rpm - target) * jnp.exp(-dt / tau)
     if tau_down is None:
         return up
-    k = 1.0 / (2.0 * hover_rpm * tau_down)
+    k = 1.0 / (2.0 * reference_rpm * tau_down)
     # From rpm > target: rpm(t) - target = 2 target (rpm - target) e / (rpm (1 - e) + target (1 + e)), with
     # e = exp(-2 k target t), divided through by target so that target = 0 (a motor cut) is the limit
     # rpm / (1 + k rpm t) rather than 0 / 0.

@@ -33,6 +33,7 @@ from aswarm.core.observation import observe
 from aswarm.envs import collisions as col
 from aswarm.envs import firmware_mellinger, firmware_pid, randomization
 from aswarm.envs.config import EnvConfig
+from aswarm.envs.crazyflie import SPIN_DOWN_REFERENCE_RPM
 from aswarm.envs.dynamics import (
     DroneState,
     drone_state,
@@ -136,7 +137,6 @@ class SwarmEnv:
         self.randomize = config.randomize.enabled
         self.lag = config.cf.motor_tau > 0
         self.lag_down = config.cf.motor_tau_down > 0
-        self._hover_rpm_nominal = float(config.cf.hover_rpm)
         self.drag = any(c > 0 for c in config.cf.drag)
         self.ticks = config.substeps // config.ctrl_every  # onboard-controller ticks per policy step
         # The rotor speed the firmware's thrust map commands, per sqrt(thrust): the nominal drone's kf.
@@ -240,7 +240,7 @@ class SwarmEnv:
         def physics(d, rpm_cmd, rpm):
             if self.lag:
                 down = p.cf.motor_tau_down if self.lag_down else None
-                rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim, down, self._hover_rpm_nominal)
+                rpm = rotor_lag(rpm, rpm_cmd, p.cf.motor_tau, dt_sim, down, SPIN_DOWN_REFERENCE_RPM)
             else:
                 rpm = rpm_cmd
             return physics_step(self.mjx_model, d, rpm, p.cf, self.drag), rpm
