@@ -24,8 +24,14 @@ swarm size: ``aswarm export --env num_agents=16``) into
 Episodes start from ``--seed`` (default 50000): the shipped race policy was chosen on the episodes of seeds
 10000 and 20000 (the evaluation seed and the one after it), so the matrix flies episodes no choice was made on.
 Each finished cell is kept in ``OUT/cells/CELL.json`` (``OUT/cells-quick/`` with ``--quick``) with its episodes,
-seed and policy; a re-run reuses it when those match. Writes ``OUT/safety_matrix.md`` and ``.json``
+seed, policy and drone; a re-run reuses it when those match. Writes ``OUT/safety_matrix.md`` and ``.json``
 (``safety_matrix_quick.*`` with ``--quick``).
+
+``--drone stored`` (the default) flies each policy on the drone its run stored (the shipped policies trained before
+session 22 on rotors that slowed down with the spin-up's time constant); ``--drone identified`` flies every cell on
+the default drone of today, whose rotors also slow down as ``drone-models`` identified them
+(``cf.motor_tau_down``), whatever the policy trained on: the drone that flies. Its cells are cached in
+``OUT/cells-identified/`` and reported in ``OUT/safety_matrix_identified.{md,json}``.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ import time
 from pathlib import Path
 
 from aswarm.envs.config import EnvConfig
+from aswarm.envs.crazyflie import CrazyflieParams
 from aswarm.files import write_atomic
 
 # Episodes of the full run: the headline cells get enough for a 95 % interval of about +-0.2 points around a 99 %
@@ -68,6 +75,8 @@ DYNAMIC_MOVING = (1, 2, 3)
 # 16-drone one trained with --env max_neighbours=3, so both fly every swarm size.
 SWARM_NEIGHBOURS = 3
 SWARM_FIELDS = ("num_agents", "max_neighbours", "filter_neighbours")  # a bundle is exported for these (SITL: the rest)
+# --drone: the env overrides that make each drone (none: the policy's stored one).
+DRONES = {"stored": (), "identified": (f"cf.motor_tau_down={CrazyflieParams().motor_tau_down!r}",)}
 COLLISION_KINDS = ("obstacle", "drone", "gate", "floor", "bounds")  # evaluate.COLLISION_KINDS, without JAX
 SHIPPED = "pretrained"
 # The 4-drone policies observe 3 other drones: they fly the swarm cells too (the obstacles one better than a policy
@@ -164,6 +173,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         f"{LARGE_EPISODES} or {LARGEST_EPISODES})")
     p.add_argument("--seed", type=int, default=MATRIX_SEED, help=f"the episodes' seed (default {MATRIX_SEED}: unseen)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"), help="default: experiments/results")
+    p.add_argument("--drone", choices=tuple(DRONES), default="stored",
+                   help="stored: each policy on the drone its run trained on (default); identified: every cell on "
+                        "today's default drone (the identified rotor spin-down), cached apart")
     args = p.parse_args(argv)
     from aswarm.analysis.evaluate import is_shipped, shipped
 
@@ -229,11 +241,14 @@ def policy_filter(run: str) -> dict | None:
         return None
 
 
-def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int) -> dict:
-    """What a cached cell must match to be reused (JSON round-tripped, as it is read back)."""
+def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: str = "stored") -> dict:
+    """What a cached cell must match to be reused (JSON round-tripped, as it is read back). ``drone`` enters only
+    when it is not the stored one, so the cells cached before ``--drone`` existed stay valid."""
     key = {"cell": cell.name, "mode": mode, "scenario": cell.scenario, "env_overrides": list(cell.overrides),
            "episodes": episodes, "seed": seed, "policy": run, "policy_step": newest_step(run),
            "policy_filter": policy_filter(run)}
+    if drone != "stored":
+        key["drone"] = drone
     if mode == "sitl":
         key.update(noise=SITL_NOISE_M, latency_ms=SITL_LATENCY_MS)
     return json.loads(json.dumps(key))
@@ -254,21 +269,27 @@ def one_line(e: Exception) -> str:
 
 def bundle_for(name: str, run: str, out: Path, swarm: list[str]) -> Path:
     """The bundle of ``run`` in ``out/bundles/name`` for the swarm ``swarm`` (num_agents, max_neighbours overrides;
-    a bundle flies the swarm it was exported for), exported (atomically, by write_bundle) unless it is there."""
+    a bundle flies the swarm it was exported for), exported (atomically, by write_bundle) unless it is there, from
+    the same checkpoint and filter settings."""
     from aswarm.flight import export
 
     path = out / "bundles" / name
     manifest = path / "manifest.json"
     if manifest.is_file():
         source = json.loads(manifest.read_text()).get("source", {})
+        # The filter settings too: a shipped policy's config may change them without new checkpoints.
         if (source.get("checkpoint") == run and source.get("trained_updates") == newest_step(run)
-                and source.get("export_env_overrides", []) == sorted(swarm)):
+                and source.get("export_env_overrides", []) == sorted(swarm)
+                and source.get("train_config", {}).get("safety_filter") == policy_filter(run)):
             return path
     return export.export(run, path, force=path.exists(), env_overrides=swarm)
 
 
-def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int, out: Path) -> dict:
-    """One cell's row: the evaluation's (or SITL's) result, or why the policy cannot fly it."""
+def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int, out: Path,
+             drone: str = "stored") -> dict:
+    """One cell's row: the evaluation's (or SITL's) result, or why the policy cannot fly it; on ``drone``
+    (:data:`DRONES`)."""
+    flown = cell.flown + list(DRONES[drone])
     from aswarm.analysis import evaluate
     from aswarm.flight import sitl
 
@@ -276,15 +297,20 @@ def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int
     t0 = time.perf_counter()
     try:
         if mode == "sim":
-            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, cell.flown)
+            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, flown)
         else:
             swarm = [o for o in cell.overrides if o.split("=")[0] in SWARM_FIELDS]
             bundle = bundle_for(f"{key}-{cell.name}" if swarm else key, run, out, swarm)
             result = sitl.run_sitl(bundle, cell.scenario, episodes, seed, noise=SITL_NOISE_M,
-                                   latency_ms=SITL_LATENCY_MS, env_overrides=cell.flown)
+                                   latency_ms=SITL_LATENCY_MS, env_overrides=flown)
     except ValueError as e:  # above all: the policy's observation layout (or the bundle's swarm) is not the cell's
         return {"status": "not run", "reason": f"the policy cannot fly it: {one_line(e)}", "result": None}
     return {**row, "result": result, "wall_s": time.perf_counter() - t0}
+
+
+def _suffix(drone: str) -> str:
+    """Another drone's cells and report live beside the stored drone's, not over them."""
+    return "" if drone == "stored" else f"-{drone}"
 
 
 def _clock(seconds: float) -> str:
@@ -300,7 +326,7 @@ def _progress(label: str | None, t_start: float, text: str) -> None:
 
 def matrix(args: argparse.Namespace) -> list[dict]:
     """Every cell's row (simulation, then the headline cells in SITL), computed, reused or not run."""
-    cache = args.out / ("cells-quick" if args.quick else "cells")
+    cache = args.out / (("cells-quick" if args.quick else "cells") + _suffix(args.drone))
     jobs = [(c, "sim") for c in CELLS] + [(c, "sitl") for c in CELLS if c.headline]
     todo = [j for j in jobs if (args.only is None or j[0].name in args.only) and not (args.sim_only and j[1] == "sitl")]
     rows = []
@@ -323,7 +349,7 @@ def matrix(args: argparse.Namespace) -> list[dict]:
         key, run = chosen
         base["policy"] = run
         path = cache / f"{cell.name}{'-sitl' if mode == 'sitl' else ''}.json"
-        want = cell_key(cell, mode, run, episodes, args.seed)
+        want = cell_key(cell, mode, run, episodes, args.seed, args.drone)
         row = cached(path, want)
         if row is not None:
             progress(f"reused {path}")
@@ -334,7 +360,7 @@ def matrix(args: argparse.Namespace) -> list[dict]:
             rows.append({**base, "status": "not run", "reason": reason, "result": None})
             continue
         progress(f"{episodes} episodes with {run} ...")
-        row = run_cell(cell, mode, run, key, episodes, args.seed, args.out)
+        row = run_cell(cell, mode, run, key, episodes, args.seed, args.out, args.drone)
         rows.append({**base, **row})
         if row["status"] != "done":  # not cached: a fix of the code or the policy must not be masked
             progress(f"not run: {row['reason']}")
@@ -394,8 +420,12 @@ def report(rows: list[dict], args: argparse.Namespace, command: str, wall: float
     cells = sum(r.get("wall_s", 0.0) for r in rows if r["result"] is not None)
     policies = ", ".join(f"{k} = `{v}`" for k, v in sorted(args.policies.items()))
     quick = " **Quick run** (a pipeline check, not a measurement)." if args.quick else ""
+    drone = ("Drone: each policy's stored one (the drone its run trained on)." if args.drone == "stored" else
+             f"Drone: today's default, the identified rotor spin-down ({', '.join(DRONES[args.drone])}), for every "
+             "policy.")
     return (f"# Safety matrix (issue #13)\n\nCommand: `{command}`  \nPolicies: {policies}. Episodes from seed "
-            f"{args.seed} (unseen: the shipped race policy was chosen on seeds 10000 and 20000).{quick} Wall time of "
+            f"{args.seed} (unseen: the shipped race policy was chosen on seeds 10000 and 20000). {drone}{quick} Wall "
+            "time of "
             f"this run: {wall / 60:.1f} min; of its cells, computed now or reused: {cells / 60:.1f} min (2-core CPU)."
             "\n\n"
             "Rates with 95 % Wilson intervals. Collision episodes by kind: episodes in which a drone hit that kind "
@@ -416,10 +446,11 @@ def main(argv: list[str] | None = None) -> int:
     command = "python experiments/safety_matrix.py " + " ".join(argv if argv is not None else sys.argv[1:])
     md = report(rows, args, command.strip(), wall)
     doc = {"command": command.strip(), "seed": args.seed, "quick": args.quick, "policies": args.policies,
+           "drone": args.drone, "drone_overrides": list(DRONES[args.drone]),
            "sitl": {"noise": SITL_NOISE_M, "latency_ms": SITL_LATENCY_MS, "max_episodes": SITL_EPISODES},
            "cells": rows}
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "safety_matrix_quick" if args.quick else "safety_matrix"
+    stem = ("safety_matrix_quick" if args.quick else "safety_matrix") + _suffix(args.drone).replace("-", "_")
     write_atomic(args.out / f"{stem}.md", md)
     write_atomic(args.out / f"{stem}.json", json.dumps(doc, indent=1, default=float) + "\n")
     print(md)

@@ -196,6 +196,38 @@ def test_moving_cylinder_rows_hold_against_the_acceleration_bound_hand_derived()
         np.testing.assert_allclose(x, y, atol=1e-7)
 
 
+def test_moving_gain_cap_is_a_gain_per_hazard_hand_derived():
+    """Two cylinders, one moving (bound 2 m/s²) and one static, drone gain 2 /s, moving_gain_max 0.8 /s: the moving
+    one's row is b = n · v_c + τ a − 0.8 h, the static one's −2 h; every other row keeps 2; without the cap all take
+    2. numpy and JAX build the same rows."""
+    R, r, margin, lag, a = 0.2, 0.05, 0.05, 0.3, 2.0
+    pos, vel = np.array([0.5, 0.5, 1.0]), np.zeros(3)
+    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
+    accel, present = np.array([a, 0.0]), np.ones(2, bool)
+    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
+    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(accel, lag))
+    parts = barriers._barrier_parts(pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none,
+                                    np.array([2.0]), moving_gain_max=0.8, **kw)
+    cyl, floor = parts[0], parts[2]
+    d = np.sqrt(0.5)
+    h = np.array([d - (R + r + margin), 0.6 - (R + r + margin)])
+    np.testing.assert_allclose(cyl.h, h, atol=1e-9)
+    np.testing.assert_allclose(cyl.b, [d * 1.0 + lag * a - 0.8 * h[0], -2.0 * h[1]], atol=1e-9)
+    np.testing.assert_allclose(floor.b, [-2.0 * (1.0 - (r + margin))], atol=1e-9)
+    uncapped = barriers._barrier_parts(pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none,
+                                       np.array([2.0]), **kw)[0]
+    np.testing.assert_allclose(uncapped.b, [d * 1.0 + lag * a - 2.0 * h[0], -2.0 * h[1]], atol=1e-9)
+    # Above the drone's gain the cap changes nothing.
+    loose = barriers._barrier_parts(pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none,
+                                    np.array([2.0]), moving_gain_max=3.0, **kw)[0]
+    np.testing.assert_allclose(loose.b, uncapped.b, atol=1e-12)
+    with jax.enable_x64(True):
+        got = barriers._barrier_parts(*(jnp.asarray(x) for x in (pos, vel, centers, np.full(2, R), vels, present, nbr,
+                                                                 nbr, none, np.array([2.0]))), moving_gain_max=0.8,
+                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
+    np.testing.assert_allclose(np.asarray(got.b), cyl.b, atol=1e-12)
+
+
 def test_neighbour_rows_split_the_pair_condition():
     rng = np.random.default_rng(6)
     p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
@@ -483,6 +515,14 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
         u_jax = jax.jit(lambda o, c, g, a: filter_from_obs(layout, o, c, g, U_MAX, 0.06, moving, 0.3, 0.05, a).u)(
             jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel))
     np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
+    # With a gain cap on the moving cylinders' rows alone: the same in both, and it changes the commands.
+    capped = dataclasses.replace(moving, moving_gain_max=0.3)
+    res_cap = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, capped, 0.3, 0.05, accel)
+    assert np.abs(res_cap.u - res_np.u).max() > 1e-3
+    with jax.enable_x64(True):
+        u_jax = jax.jit(lambda o, c, g, a: filter_from_obs(layout, o, c, g, U_MAX, 0.06, capped, 0.3, 0.05, a).u)(
+            jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel))
+    np.testing.assert_allclose(np.asarray(u_jax), res_cap.u, atol=1e-9)
     # With braking: the commands flown now, the reachable box and the braking rows; again the same in both, every
     # command inside the box, and changed by it.
     braking = dataclasses.replace(moving, braking=True)
@@ -687,6 +727,11 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     whole = SafetyFilterConfig(lookahead_scale=1.0).fitted(0.5, 0.2)
     assert (whole.gain_max, whole.lookahead_xy, whole.lookahead_z) == (1.0, 0.5, 0.2)
     assert SafetyFilterConfig(fit_lookahead=False).fitted(0.5, 0.2).lookahead_xy == 0.0
+    # The moving cylinders' gain cap is a gain: fitted with the others; off (0) in bundles from before it.
+    assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
+    assert from_manifest(old).moving_gain_max == 0.0
+    with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
+        SafetyFilterConfig(moving_gain_max=-1.0)
 
 
 def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch, tmp_path):

@@ -100,6 +100,52 @@ def test_cached_cell_is_recomputed_when_its_key_changes(tmp_path):
     assert mod.cached(path, key) is None
 
 
+def test_identified_drone_flies_apart_from_the_stored_one(tmp_path, monkeypatch):
+    mod = _module()
+    cell = mod.CELLS[0]
+    stored = mod.cell_key(cell, "sim", "pretrained", 8, 1)
+    assert "drone" not in stored and mod.cell_key(cell, "sim", "pretrained", 8, 1, "stored") == stored
+    identified = mod.cell_key(cell, "sim", "pretrained", 8, 1, "identified")
+    assert identified == {**stored, "drone": "identified"}
+    # The identified drone is today's default (0.108 s spin-down), whatever the policy's run stored (0 for runs
+    # from before session 22).
+    assert mod.DRONES["identified"] == ("cf.motor_tau_down=0.108",)
+    assert mod.parse_args(["--drone", "identified"]).drone == "identified"
+    assert mod.parse_args([]).drone == "stored"
+    with pytest.raises(SystemExit):
+        mod.parse_args(["--drone", "geometric"])
+    # The cell's own overrides and pins, then the drone's, reach the evaluation.
+    from aswarm.analysis import evaluate
+
+    flown = []
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda run, scenario, n, seed, overrides: flown.append(
+        overrides) or {"episodes": n})
+    dyn = next(c for c in mod.CELLS if c.name == "dynamic-3")
+    for drone in ("stored", "identified"):
+        assert mod.run_cell(dyn, "sim", "pretrained:dynamic", "dynamic", 2, 1, tmp_path, drone)["status"] == "done"
+    assert flown == [dyn.flown, dyn.flown + ["cf.motor_tau_down=0.108"]]
+
+
+def test_a_bundle_is_exported_again_when_the_policy_filter_changes(tmp_path, monkeypatch):
+    """A shipped policy's config may change its filter without new checkpoints (pretrained:dynamic's moving-cylinder
+    gain cap): its SITL cells must not fly the bundle exported before."""
+    mod = _module()
+    from aswarm.flight import export
+
+    calls = []
+    monkeypatch.setattr(export, "export", lambda run, path, force, env_overrides: calls.append(run) or path)
+    folder = tmp_path / "bundles" / "dynamic"
+    folder.mkdir(parents=True)
+    source = {"checkpoint": "pretrained:dynamic", "trained_updates": mod.newest_step("pretrained:dynamic"),
+              "export_env_overrides": [], "train_config": {"safety_filter": mod.policy_filter("pretrained:dynamic")}}
+    (folder / "manifest.json").write_text(json.dumps({"source": source}))
+    assert mod.bundle_for("dynamic", "pretrained:dynamic", tmp_path, []) == folder and calls == []
+    source["train_config"]["safety_filter"] = {**source["train_config"]["safety_filter"], "moving_gain_max": 0.0}
+    (folder / "manifest.json").write_text(json.dumps({"source": source}))
+    mod.bundle_for("dynamic", "pretrained:dynamic", tmp_path, [])
+    assert calls == ["pretrained:dynamic"]
+
+
 def test_cells_of_the_issue():
     mod = _module()
     by = {c.name: c for c in mod.CELLS}

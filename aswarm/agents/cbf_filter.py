@@ -297,7 +297,8 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
         rows = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
                                  gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                                  neighbour_share=safety.neighbour_share,
-                                 lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a, braking=braking)
+                                 lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a, braking=braking,
+                                 moving_gain_max=safety.moving_gain_max)
 
         def solve(nominal):
             return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,

@@ -232,8 +232,11 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
                    drone_radius: float, margin: float, floor_z: float, neighbour_share,
-                   cyl_motion: tuple | None = None, cyl_braking: tuple | None = None) -> list[Rows]:
-    """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]."""
+                   cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
+                   moving_gain_max: float = 0.0) -> list[Rows]:
+    """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
+    ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
+    ones) take at most that gain."""
     xp = geometry.namespace(pos)
     M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
     gamma = xp.asarray(gamma, dtype=pos.dtype)
@@ -248,6 +251,8 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         # the same bits).
         gamma = xp.broadcast_to(gamma, pos.shape[:-1] + (M + K + 1,))
         g_cyl, g_nbr, g_floor = gamma[..., :M], gamma[..., M:M + K], gamma[..., M + K:]
+    if moving_gain_max > 0 and cyl_motion is not None:  # (a static choice: without it the rows trace as before)
+        g_cyl = xp.where(cyl_motion[0] > 0, xp.minimum(g_cyl, xp.asarray(moving_gain_max, dtype=pos.dtype)), g_cyl)
     if cyl_braking is None:
         cyl = cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
                             margin=margin, motion=cyl_motion)
@@ -266,7 +271,8 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
-             lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None) -> Rows:
+             lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
+             moving_gain_max: float = 0.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -290,6 +296,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     cylinder's acceleration, for scenes where cylinders move. The observation holds each one's velocity but not its
     acceleration, so its row holds against the worst within the bound (:func:`cylinder_rows`' ``motion``; a static
     one, bound 0, keeps its row; nothing changes without a look-ahead, where the command acts at once).
+    ``moving_gain_max`` > 0 (1/s): the rows of the cylinders whose bound is > 0 take at most this gain (a gain per
+    hazard: conservative towards what moves); it needs ``cyl_accel``.
 
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
@@ -336,7 +344,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
                             neighbour_share=neighbour_share, cyl_motion=motion,
-                            cyl_braking=None if braking is None else (*braking, lookahead[0]))
+                            cyl_braking=None if braking is None else (*braking, lookahead[0]),
+                            moving_gain_max=moving_gain_max)
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
     walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)

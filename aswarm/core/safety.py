@@ -63,6 +63,11 @@ class SafetyFilterConfig:
     escape: bool = False
     escape_stuck: float = 0.25
     escape_near: float = 0.3
+    # A cap (1/s) on the gain of the moving cylinders' rows alone (0: none, their rows take the drone's gain as
+    # every other row does): a per-hazard gain, conservative towards the hazards that move and as permissive as the
+    # network likes towards the rest. Scaled with the other gains to the drone (fitted). It needs hazard_accel, whose
+    # bounds tell the moving cylinders (bound > 0) from the static ones. Runs and bundles from before read back 0.
+    moving_gain_max: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
@@ -88,7 +93,8 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("margin", "lookahead_xy", "lookahead_z", "lookahead_scale", "escape_stuck", "escape_near"):
+        for name in ("moving_gain_max", "margin", "lookahead_xy", "lookahead_z", "lookahead_scale", "escape_stuck",
+                     "escape_near"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if not 0 < self.neighbour_share <= 1:
@@ -111,7 +117,8 @@ class SafetyFilterConfig:
         k = self.lookahead_scale
         ahead = {"lookahead_xy": k * lag_xy, "lookahead_z": k * lag_z} if self.fit_lookahead else {}
         return dataclasses.replace(self, gain_min=self.gain_min * scale, gain_max=self.gain_max * scale,
-                                   fixed_gain=self.fixed_gain * scale, fit_to_drone=False, **ahead)
+                                   fixed_gain=self.fixed_gain * scale, moving_gain_max=self.moving_gain_max * scale,
+                                   fit_to_drone=False, **ahead)
 
 
 # The config's true/false fields; every other field is a number.
@@ -159,7 +166,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
-              "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, **safety}
+              "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, "moving_gain_max": 0.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

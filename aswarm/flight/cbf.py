@@ -474,7 +474,8 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
                              margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                              floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking)
+                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking,
+                             moving_gain_max=safety.moving_gain_max)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
 
     def solve(nominal):
