@@ -732,6 +732,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert from_manifest(old).moving_gain_max == 0.0
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
+    with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
+        SafetyFilterConfig(moving_gain_max=1.0, hazard_accel=False)
 
 
 def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch, tmp_path):

@@ -97,6 +97,9 @@ class SafetyFilterConfig:
                      "escape_near"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
+        if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
+            raise ValueError(f"invalid safety_filter.moving_gain_max={self.moving_gain_max!r} with hazard_accel=false: "
+                             "allowed: 0, or hazard_accel=true")
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
 
