@@ -73,6 +73,8 @@ def test_roll_step_on_left_motors_rolls_right_side_down():
 
 
 def test_mjx_float32_matches_mujoco_c():
+    # MuJoCo C steps the drawn scene (drone geoms, floor) and MJX the stepped model without geoms: they agree,
+    # so the drawn geoms carry no physics.
     rng = np.random.default_rng(0)
     steps = SIM
     rpm = CF.hover_rpm * (1 + 0.02 * rng.standard_normal((steps, 2, 4)))
@@ -81,8 +83,9 @@ def test_mjx_float32_matches_mujoco_c():
                       vel=jnp.array([[0.3, 0.0, 0.0], [0.0, -0.2, 0.1]]), ang_vel=jnp.zeros((2, 3)))
     tr = simulate_rpm(init, rpm, SIM)
 
-    m = scene.build_model(2, SIM, CF, physics_only=True)
-    assert m.opt.timestep == pytest.approx(1 / SIM)
+    assert scene.build_model(2, SIM, CF, physics_only=True).ngeom == 0
+    m = scene.build_model(2, SIM, CF, physics_only=False)
+    assert m.ngeom > 2 and m.opt.timestep == pytest.approx(1 / SIM)
     d = mujoco.MjData(m)
     d.qpos[:] = np.concatenate([np.concatenate([init.pos[i], init.quat[i]]) for i in range(2)])
     d.qvel[:] = np.concatenate([np.concatenate([init.vel[i], init.ang_vel[i]]) for i in range(2)])

@@ -1,0 +1,77 @@
+"""What one batched ``mjx.step`` of the stepped swarm model costs, and what its drawn parts would add.
+
+    python experiments/mjx_step_cost.py                  # 1024 worlds of 4 drones, 20 steps, best of 5
+    python experiments/mjx_step_cost.py --worlds 64 --drones 16
+
+Times the physics model the environment steps (``scene.build_xml(physics_only=True)``: inertia only, the
+unused stages off) against the same drones carrying the drawn geoms of the scene (body box, four rotor discs,
+the floor), all massless and without contacts. The whole ``mjx.Data`` is carried through ``lax.scan``, as the
+trainer carries it in its environment state, so XLA cannot drop the geoms' poses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from mujoco import mjx
+
+from aswarm.envs import scene
+from aswarm.envs.crazyflie import CrazyflieParams
+
+
+def drawn_xml(num_drones: int, sim_freq: int, cf: CrazyflieParams) -> str:
+    """The stepped model with every drone's drawn geoms and the floor put back (the model before session 24)."""
+    lean = scene.build_xml(num_drones, sim_freq, cf, physics_only=True)
+    drawn = scene.build_xml(num_drones, sim_freq, cf, physics_only=False)
+    # Without cylinders and gates the drawn scene differs from the stepped model by its geoms alone.
+    assert drawn.count("<body") == lean.count("<body")
+    return drawn
+
+
+def seconds(xml: str, worlds: int, steps: int, repeat: int) -> tuple[float, int]:
+    """Best wall time of ``steps`` batched steps of ``worlds`` hovering-thrust worlds, and the model's geoms."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    mx = mjx.put_model(m)
+    d0 = mjx.make_data(mx)
+    d0 = d0.replace(qpos=d0.qpos.at[2::7].set(1.0), xfrc_applied=d0.xfrc_applied.at[1:, 2].set(0.3))
+    batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (worlds, *x.shape)), d0)
+
+    @jax.jit
+    def run(d):
+        return jax.lax.scan(lambda d, _: (jax.vmap(lambda x: mjx.step(mx, x))(d), None), d, None, length=steps)[0]
+
+    batch = jax.block_until_ready(run(batch))
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        batch = jax.block_until_ready(run(batch))
+        best = min(best, time.perf_counter() - t0)
+    return best, m.ngeom
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--worlds", type=int, default=1024)
+    p.add_argument("--drones", type=int, default=4)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--sim-freq", type=int, default=500)
+    a = p.parse_args()
+    cf = CrazyflieParams()
+    print(f"{a.worlds} worlds x {a.drones} drones, {a.steps} steps of 1/{a.sim_freq} s, {jax.devices()[0].platform}")
+    rates = {}
+    for name, xml in (("stepped model (inertia only)", scene.build_xml(a.drones, a.sim_freq, cf, physics_only=True)),
+                      ("with the drawn geoms", drawn_xml(a.drones, a.sim_freq, cf))):
+        s, ngeom = seconds(xml, a.worlds, a.steps, a.repeat)
+        rates[name] = a.worlds * a.steps / s
+        print(f"  {name:30s} {ngeom:3d} geoms  {1e3 * s:8.2f} ms  {rates[name] / 1e3:8.0f}k world-steps/s", flush=True)
+    lean, drawn = rates.values()
+    print(f"  ratio: {lean / drawn:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
