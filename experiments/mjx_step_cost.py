@@ -23,15 +23,6 @@ from aswarm.envs import scene
 from aswarm.envs.crazyflie import CrazyflieParams
 
 
-def drawn_xml(num_drones: int, sim_freq: int, cf: CrazyflieParams) -> str:
-    """The stepped model with every drone's drawn geoms and the floor put back (the model before session 24)."""
-    lean = scene.build_xml(num_drones, sim_freq, cf, physics_only=True)
-    drawn = scene.build_xml(num_drones, sim_freq, cf, physics_only=False)
-    # Without cylinders and gates the drawn scene differs from the stepped model by its geoms alone.
-    assert drawn.count("<body") == lean.count("<body")
-    return drawn
-
-
 def seconds(xml: str, worlds: int, steps: int, repeat: int) -> tuple[float, int]:
     """Best wall time of ``steps`` batched steps of ``worlds`` hovering-thrust worlds, and the model's geoms."""
     m = mujoco.MjModel.from_xml_string(xml)
@@ -65,7 +56,8 @@ def main() -> None:
     print(f"{a.worlds} worlds x {a.drones} drones, {a.steps} steps of 1/{a.sim_freq} s, {jax.devices()[0].platform}")
     rates = {}
     for name, xml in (("stepped model (inertia only)", scene.build_xml(a.drones, a.sim_freq, cf, physics_only=True)),
-                      ("with the drawn geoms", drawn_xml(a.drones, a.sim_freq, cf))):
+                      # Without cylinders and gates the drawn scene is the stepped model plus its geoms.
+                      ("with the drawn geoms", scene.build_xml(a.drones, a.sim_freq, cf, physics_only=False))):
         s, ngeom = seconds(xml, a.worlds, a.steps, a.repeat)
         rates[name] = a.worlds * a.steps / s
         print(f"  {name:30s} {ngeom:3d} geoms  {1e3 * s:8.2f} ms  {rates[name] / 1e3:8.0f}k world-steps/s", flush=True)
