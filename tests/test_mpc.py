@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from aswarm import envs
-from aswarm.baselines.mpc import MPCConfig, frame_distance, make_mpc_policy, rollout_mpc
-from aswarm.core import geometry as geo
+from aswarm.baselines.mpc import MPCConfig, make_mpc_policy, rollout_mpc
 from aswarm.envs import collisions as col
 from aswarm.envs.dynamics import drone_state
 
@@ -101,18 +100,6 @@ def test_the_gate_just_passed_is_remembered():
     np.testing.assert_allclose(carry.passed_gate[:, :3], -obs[:, own["target_rel"]], atol=1e-6)
     np.testing.assert_allclose(carry.passed_gate[:, 3:6], obs[:, own["target_normal"]])
     assert np.all(carry.passed_gate[:, 6] == 1)
-
-
-def test_frame_distance_matches_the_gate_frame_segments():
-    rng = np.random.default_rng(0)
-    centre, yaw, half, bar = np.array([1.0, -2.0, 1.2]), 0.7, 0.3, 0.05
-    frames = geo.gate_frames(jnp.asarray(centre)[None], jnp.array([yaw]), half, bar)[0]
-    pts = centre + rng.uniform(-0.8, 0.8, (2000, 3)) * [1.0, 1.0, 1.5]
-    want = np.min(geo.point_segment_distance(jnp.asarray(pts)[:, None], frames[None, :, 0], frames[None, :, 1]), -1)
-    d = pts - centre
-    normal, lateral = np.array([np.cos(yaw), np.sin(yaw), 0.0]), np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-    got = frame_distance(d @ normal, d @ lateral, d[:, 2], half, bar, centre[2])
-    np.testing.assert_allclose(got, want, atol=1e-5)
 
 
 def test_rollout_mpc_returns_each_episodes_metrics():

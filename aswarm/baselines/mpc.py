@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from aswarm.analysis.protocol import EVAL_SEED
+from aswarm.core import geometry
 from aswarm.core.layout import CYL, NBR
 from aswarm.envs.swarm_env import SwarmEnv
 
@@ -223,26 +224,6 @@ def _noise_bank(config: MPCConfig) -> np.ndarray:
     return out
 
 
-def frame_distance(s: jax.Array, lat: jax.Array, vert: jax.Array, half_opening: float, bar: float,
-                   height: jax.Array) -> jax.Array:
-    """Distance from a point to the centre lines of a gate frame, in the gate's coordinates.
-
-    ``s`` along the passage direction, ``lat`` sideways and ``vert`` up, from the centre of the opening;
-    ``height`` is the centre's height above the floor. The frame is the square of centre-line half-size
-    ``half_opening + bar / 2`` in the plane s = 0 and the post from its bottom edge down to the floor,
-    as :func:`aswarm.core.geometry.gate_frames` builds it; the cheaper closed form of the same distance, for
-    the rollouts' inner loop (``tests/test_mpc.py`` pins it to ``gate_frames`` and ``point_segment_distance``).
-    """
-    c = half_opening + bar / 2
-    al, av = jnp.abs(lat), jnp.abs(vert)
-    far = jnp.maximum(al, av)
-    in_plane_square = jnp.where(far <= c, c - far, jnp.sqrt(jnp.square(jnp.maximum(al - c, 0.0))
-                                                            + jnp.square(jnp.maximum(av - c, 0.0))))
-    below = jnp.clip(vert, -height, -c)  # nearest point of the post, measured along vert
-    in_plane_post = jnp.sqrt(jnp.square(lat) + jnp.square(vert - below))
-    return jnp.sqrt(jnp.square(s) + jnp.square(jnp.minimum(in_plane_square, in_plane_post)))
-
-
 def fit_to_drone(config: MPCConfig, env: SwarmEnv) -> MPCConfig:
     """``config`` with its model measured on ``env``'s drone (``analysis.step_response.characterise``): the
     vertical gain from the 63 % rise of a z step, the acceleration limits from the steepest 0.1 s of 2 m/s
@@ -366,7 +347,7 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
         through = crosses & (s0 < 0) & (jnp.maximum(jnp.abs(hl), jnp.abs(hv)) < cfg.gate_half_opening)
         passed = passed | through
         # Frame clearance where a bar can be hit: at the plane when the step crosses it.
-        d_frame = frame_distance(jnp.where(crosses, 0.0, s1), jnp.where(crosses, hl, l1),
+        d_frame = geometry.frame_distance(jnp.where(crosses, 0.0, s1), jnp.where(crosses, hl, l1),
                                  jnp.where(crosses, hv, v1), cfg.gate_half_opening, cfg.gate_bar, c[2])
         d_frame = d_frame - cfg.gate_bar / 2 - r
         # To go before the gate: distance to its centre with the offset from its axis weighed more than the
@@ -387,7 +368,7 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
         # The gate passed last: its frame is behind the drone, the point itself is checked.
         q = [p[i] - sc.passed_centre[i] for i in range(3)]
         pn = sc.passed_normal
-        d_old = frame_distance(q[0] * pn[0] + q[1] * pn[1], -q[0] * pn[1] + q[1] * pn[0], q[2],
+        d_old = geometry.frame_distance(q[0] * pn[0] + q[1] * pn[1], -q[0] * pn[1] + q[1] * pn[0], q[2],
                                cfg.gate_half_opening, cfg.gate_bar, sc.passed_centre[2]) - cfg.gate_bar / 2 - r
         d_frame = jnp.where(sc.passed_valid, jnp.minimum(d_frame, d_old), d_frame)
         frame = config.gate_weight * _barrier(d_frame, config.gate_margin, config.collision_cost)

@@ -138,12 +138,35 @@ def drone_clearance(pos, active, r: float):
     return xp.where(valid, dist - 2 * r, FAR)
 
 
-def gate_clearance(pos, frames, bar: float, r: float):
-    """[..., n, G] gap between drone spheres and the (round) bars of the gate frames [..., G, 5, 2, 3]."""
-    xp = namespace(pos, frames)
-    d = point_segment_distance(pos[..., :, None, None, :], frames[..., None, :, :, 0, :],
-                               frames[..., None, :, :, 1, :])
-    return xp.min(d, axis=-1) - bar / 2 - r
+def frame_distance(s, lat, vert, half_opening: float, bar: float, height):
+    """Distance from points to the centre lines of a gate frame, in the gate's coordinates.
+
+    ``s`` along the passage direction, ``lat`` sideways and ``vert`` up, from the centre of the opening;
+    ``height`` is the centre's height above the floor. The frame is the square of centre-line half-size
+    ``half_opening + bar / 2`` in the plane s = 0 and the post from its bottom edge down to the floor: the
+    segments of :func:`gate_frames`, in closed form (two distances where the segments take five).
+    """
+    xp = namespace(s, lat, vert)
+    c = half_opening + bar / 2
+    al, av = xp.abs(lat), xp.abs(vert)
+    far = xp.maximum(al, av)
+    outside = xp.maximum(al - c, 0.0) ** 2 + xp.maximum(av - c, 0.0) ** 2
+    in_plane_square = xp.where(far <= c, c - far, xp.sqrt(outside))
+    below = xp.clip(vert, -height, -c)  # the post's nearest point, measured along vert
+    in_plane_post = xp.sqrt(lat**2 + (vert - below) ** 2)
+    return xp.sqrt(s**2 + xp.minimum(in_plane_square, in_plane_post) ** 2)
+
+
+def gate_clearance(pos, gate_pos, gate_yaw, half_opening: float, bar: float, r: float):
+    """[..., n, G] gap between drone spheres (radius ``r``) [..., n, 3] and the (round) bars of the gates' frames
+    (:func:`gate_frames`) at gate_pos [..., G, 3], gate_yaw [..., G]."""
+    xp = namespace(pos, gate_pos)
+    rel = pos[..., :, None, :] - gate_pos[..., None, :, :]
+    cos, sin = xp.cos(gate_yaw)[..., None, :], xp.sin(gate_yaw)[..., None, :]
+    along = rel[..., 0] * cos + rel[..., 1] * sin
+    lat = rel[..., 1] * cos - rel[..., 0] * sin
+    d = frame_distance(along, lat, rel[..., 2], half_opening, bar, gate_pos[..., None, :, 2])
+    return d - bar / 2 - r
 
 
 def out_of_bounds(pos, low, high):

@@ -22,6 +22,27 @@ class Wrapper:
         return self.env.step(state, action)
 
 
+# What a new episode replaces; the finished step's reward, cost, done, truncated and metrics stay.
+_EPISODE = ("data", "obs", "critic_obs", "layout", "tracker", "onboard", "filter_obs")
+_AUTO_INFO = ("reset_key", "final_obs", "final_critic_obs")
+
+
+def _episode(state: State) -> dict:
+    return {f: getattr(state, f) for f in _EPISODE}
+
+
+def _bare(state: State) -> State:
+    return state.replace(info={k: v for k, v in state.info.items() if k not in _AUTO_INFO})
+
+
+def _restart(nxt: State, fresh: dict, key: jax.Array) -> State:
+    """``nxt`` with ``fresh``'s episode where it is done (``done`` [] for one world, [B] for a batch)."""
+    done = nxt.done > 0
+    pick = lambda x, y: jnp.where(done.reshape(done.shape + (1,) * (x.ndim - done.ndim)), x, y)  # noqa: E731
+    out = nxt.replace(**jax.tree.map(pick, fresh, _episode(nxt)))
+    return out.replace(info=dict(nxt.info, reset_key=key, final_obs=nxt.obs, final_critic_obs=nxt.critic_obs))
+
+
 class AutoResetWrapper(Wrapper):
     """Starts a new episode, with a fresh layout, where ``done``.
 
@@ -39,20 +60,27 @@ class AutoResetWrapper(Wrapper):
 
     def step(self, state: State, action: jax.Array) -> State:
         key, new_key = jax.random.split(state.info["reset_key"])
-        inner = state.replace(info={k: v for k, v in state.info.items()
-                                    if k not in ("reset_key", "final_obs", "final_critic_obs")})
-        nxt = self.env.step(inner, action)
-        fresh = self.env.reset(new_key, state.params)
-        done = nxt.done > 0
-        pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)  # noqa: E731
-        out = nxt.replace(
-            data=pick(fresh.data, nxt.data), obs=pick(fresh.obs, nxt.obs),
-            critic_obs=pick(fresh.critic_obs, nxt.critic_obs), layout=pick(fresh.layout, nxt.layout),
-            tracker=pick(fresh.tracker, nxt.tracker), onboard=pick(fresh.onboard, nxt.onboard),
-            filter_obs=pick(fresh.filter_obs, nxt.filter_obs),
-        )
-        info = dict(nxt.info, reset_key=key, final_obs=nxt.obs, final_critic_obs=nxt.critic_obs)
-        return out.replace(info=info)
+        nxt = self.env.step(_bare(state), action)
+        return _restart(nxt, _episode(self.env.reset(new_key, state.params)), key)
+
+
+class BatchAutoResetWrapper(Wrapper):
+    """:class:`AutoResetWrapper` around a :class:`VmapWrapper`, with the same numbers, that draws the new
+    episodes only on steps where some world is done: the draws (layout, domain randomisation, the first
+    observation) cost about a tenth of an env step, and most steps of a batch end no episode."""
+
+    def reset(self, key: jax.Array, params=None) -> State:
+        keys = self.env.world_keys(key)
+        state = self.env.reset(keys, params)
+        info = dict(state.info, reset_key=keys, final_obs=state.obs, final_critic_obs=state.critic_obs)
+        return state.replace(info=info)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        keys = jax.vmap(jax.random.split)(state.info["reset_key"])
+        nxt = self.env.step(_bare(state), action)
+        fresh = jax.lax.cond(jnp.any(nxt.done > 0), lambda: _episode(self.env.reset(keys[:, 1], state.params)),
+                             lambda: _episode(nxt))
+        return _restart(nxt, fresh, keys[:, 0])
 
 
 class VmapWrapper(Wrapper):
@@ -63,9 +91,14 @@ class VmapWrapper(Wrapper):
         super().__init__(env)
         self.batch_size = batch_size
 
-    def reset(self, key: jax.Array, params=None) -> State:
+    def world_keys(self, key: jax.Array) -> jax.Array:
+        """[B] keys, one per world: ``key`` itself where it is [B] already, else ``batch_size`` split from it."""
         if self.batch_size is not None and key.ndim == 1:
-            key = jax.random.split(key, self.batch_size)
+            return jax.random.split(key, self.batch_size)
+        return key
+
+    def reset(self, key: jax.Array, params=None) -> State:
+        key = self.world_keys(key)
         if params is None:
             return jax.vmap(self.env.reset)(key)
         # One value per world when the (scalar) mass has a leading axis; else the same params for every world.
@@ -77,4 +110,4 @@ class VmapWrapper(Wrapper):
 
 
 def wrap_for_training(env, batch_size: int) -> Wrapper:
-    return VmapWrapper(AutoResetWrapper(env), batch_size)
+    return BatchAutoResetWrapper(VmapWrapper(env, batch_size))
