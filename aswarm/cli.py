@@ -146,7 +146,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"invalid --out {str(out_dir)!r}: is a file; allowed: a folder")
     result = evaluate.evaluate_checkpoint(args.checkpoint, scenario=args.scenario, episodes=args.episodes,
-                                          seed=args.seed, env_overrides=args.env or [])
+                                          seed=args.seed, env_overrides=args.env or [],
+                                          progress=lambda line: print(f"aswarm eval: {line}", file=sys.stderr,
+                                                                      flush=True))
     json_path, csv_path = evaluate.write_report(result, out_dir)
     if args.json:
         print(json.dumps(result))

@@ -42,6 +42,7 @@ import functools
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from aswarm.envs.config import EnvConfig
@@ -286,9 +287,9 @@ def bundle_for(name: str, run: str, out: Path, swarm: list[str]) -> Path:
 
 
 def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int, out: Path,
-             drone: str = "stored") -> dict:
+             drone: str = "stored", progress: Callable[[str], None] | None = None) -> dict:
     """One cell's row: the evaluation's (or SITL's) result, or why the policy cannot fly it; on ``drone``
-    (:data:`DRONES`)."""
+    (:data:`DRONES`). ``progress`` takes the simulation's lines (its batches and steps)."""
     flown = cell.flown + list(DRONES[drone])
     from aswarm.analysis import evaluate
     from aswarm.flight import sitl
@@ -297,7 +298,7 @@ def run_cell(cell: Cell, mode: str, run: str, key: str, episodes: int, seed: int
     t0 = time.perf_counter()
     try:
         if mode == "sim":
-            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, flown)
+            result = evaluate.evaluate_checkpoint(run, cell.scenario, episodes, seed, flown, progress=progress)
         else:
             swarm = [o for o in cell.overrides if o.split("=")[0] in SWARM_FIELDS]
             bundle = bundle_for(f"{key}-{cell.name}" if swarm else key, run, out, swarm)
@@ -360,7 +361,7 @@ def matrix(args: argparse.Namespace) -> list[dict]:
             rows.append({**base, "status": "not run", "reason": reason, "result": None})
             continue
         progress(f"{episodes} episodes with {run} ...")
-        row = run_cell(cell, mode, run, key, episodes, args.seed, args.out, args.drone)
+        row = run_cell(cell, mode, run, key, episodes, args.seed, args.out, args.drone, progress)
         rows.append({**base, **row})
         if row["status"] != "done":  # not cached: a fix of the code or the policy must not be masked
             progress(f"not run: {row['reason']}")

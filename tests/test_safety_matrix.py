@@ -118,7 +118,7 @@ def test_identified_drone_flies_apart_from_the_stored_one(tmp_path, monkeypatch)
     from aswarm.analysis import evaluate
 
     flown = []
-    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda run, scenario, n, seed, overrides: flown.append(
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda run, scenario, n, seed, overrides, progress=None: flown.append(
         overrides) or {"episodes": n})
     dyn = next(c for c in mod.CELLS if c.name == "dynamic-3")
     for drone in ("stored", "identified"):

@@ -82,10 +82,15 @@ def test_a2c_takes_one_full_batch_step_per_rollout():
 
 def test_eval_json_is_the_only_stdout(mappo_run, capsys):
     from aswarm import cli
+    from aswarm.analysis import evaluate
 
     capsys.readouterr()
     assert cli.main(["eval", "--checkpoint", str(mappo_run), "--episodes", "8", "--json"]) == 0
-    out = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    # Progress comes from inside the program, to stderr: a line per fifth of the episode's steps.
+    lines = [x for x in captured.err.splitlines() if x.startswith("aswarm eval: episodes 1-8 of 8: step ")]
+    assert len(lines) == evaluate.PROGRESS_LINES
     assert out["episodes"] == 8 and 0.0 <= out["success_rate"] <= 1.0
     lo, hi = out["success_ci95"]
     assert lo <= out["success_rate"] <= hi

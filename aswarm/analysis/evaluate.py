@@ -11,6 +11,7 @@ import dataclasses
 import io
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -35,6 +36,8 @@ PRETRAINED_GEOMETRIC = PRETRAINED.parent / "race-geometric"
 # Reports of the shipped policy go here (relative to the working directory), not into the package.
 PRETRAINED_REPORT_DIR = Path("runs") / "eval"
 COLLISION_KINDS = KINDS[1:]  # obstacle, drone, gate, floor, bounds
+# Progress lines per batch of episodes, where a caller asks for them (rollout_with_filter_stats).
+PROGRESS_LINES = 5
 # Most episodes evaluated at once: a vmapped world holds its whole MJX state, and a million episodes in one
 # program ran out of memory. Above the 1000 of the published tables, so their numbers come from one program.
 EVAL_BATCH = 4096
@@ -64,14 +67,24 @@ def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
-                              batch: int = EVAL_BATCH) -> tuple[dict, jax.Array, FilterStats]:
+                              batch: int = EVAL_BATCH, progress: Callable[[str], None] | None = None
+                              ) -> tuple[dict, jax.Array, FilterStats]:
     """Run ``episodes`` worlds to their end with the deterministic, filtered policy.
 
     Returns the metrics of each episode ([episodes] arrays), which episodes ended, and the filter's
     :class:`FilterStats` over the drone-steps of worlds still running. Episode i starts from
     ``split(key, episodes)[i]``; at most ``batch`` worlds run at once (memory grows with them), so up to
-    ``batch`` episodes are one program, as they always were.
+    ``batch`` episodes are one program, as they always were. ``progress`` is handed a line
+    (``episodes 1-4096 of 10000: step 150 of 750``) :data:`PROGRESS_LINES` times per batch of episodes, from inside
+    the program: a batch of the race's 10,000 episodes runs for minutes.
     """
+    shown = {"first": 0, "last": min(batch, episodes)}  # the batch running now (the host runs them in turn)
+
+    def report(t):
+        progress(f"episodes {shown['first'] + 1}-{shown['last']} of {episodes}: step {int(t)} of "
+                 f"{env.config.max_steps}")
+
+    every = max(1, env.config.max_steps // PROGRESS_LINES)
     reset = jax.vmap(env.reset)
     step = jax.vmap(env.step)
 
@@ -83,7 +96,7 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         recorded = jax.tree.map(jnp.zeros_like, state.metrics)
         ended = jnp.zeros(keys.shape[0], bool)
 
-        def body(carry, _):
+        def body(carry, t):
             s, rec, ended, interventions, infeasible, escapes, flying = carry
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
             res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
@@ -96,11 +109,14 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
             infeasible = infeasible + jnp.sum((res.slack > INFEASIBLE_SLACK) * live[:, None])
             escapes = escapes + jnp.sum(res.escaped * live[:, None])
             flying = flying + jnp.sum(live) * env.num_agents
+            if progress is not None:  # (static: without it the program is the one it always was)
+                jax.lax.cond(t % every == 0, lambda: jax.debug.callback(report, t), lambda: None)
             return (s, rec, ended | first, interventions, infeasible, escapes, flying), None
 
         init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()), jnp.zeros(()))
-        (_, rec, ended, interventions, infeasible, escapes, flying), _ = jax.lax.scan(body, init, None,
-                                                                                     length=env.config.max_steps)
+        steps = None if progress is None else jnp.arange(1, env.config.max_steps + 1)  # the step, for the lines
+        (_, rec, ended, interventions, infeasible, escapes, flying), _ = jax.lax.scan(
+            body, init, steps, length=env.config.max_steps)
         return rec, ended, interventions, infeasible, escapes, flying
 
     if batch <= 0:
@@ -116,7 +132,12 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         return rec, ended, FilterStats(intervention_rate, infeasible_rate, escape_rate)
     keys = jax.random.split(key, episodes)
     run_batch = jax.jit(run)
-    parts = [run_batch(params, obs_norm, keys[i:i + batch]) for i in range(0, episodes, batch)]
+    parts = []
+    for i in range(0, episodes, batch):
+        shown.update(first=i, last=min(i + batch, episodes))
+        parts.append(run_batch(params, obs_norm, keys[i:i + batch]))
+        if progress is not None:  # the batches in turn, so that each line names the batch it comes from
+            jax.block_until_ready(parts[-1])
     rec = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[p[0] for p in parts])
     ended = np.concatenate([np.asarray(p[1]) for p in parts])
     # Counts summed in float64 on the host: float32 stops counting drone-steps exactly past 2**24.
@@ -243,9 +264,11 @@ def summarize(rec: dict, intervention_rate: float = 0.0, infeasible_rate: float 
 
 
 def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: int = 1000, seed: int = EVAL_SEED,
-                        env_overrides: list[str] | None = None, with_method: str | None = None) -> dict:
+                        env_overrides: list[str] | None = None, with_method: str | None = None,
+                        progress: Callable[[str], None] | None = None) -> dict:
     """Evaluate a checkpoint; ``with_method`` runs its networks as another method would (e.g. a policy trained
-    without a safety layer under ``fixed_cbf``'s filter): every method has the same parameter tree."""
+    without a safety layer under ``fixed_cbf``'s filter): every method has the same parameter tree. ``progress``:
+    see :func:`rollout_with_filter_stats`."""
     if episodes <= 0:
         raise ValueError(f"invalid episodes={episodes}: must be > 0")
     config, agent, restored = load_agent(checkpoint_dir, scenario, env_overrides)
@@ -254,7 +277,7 @@ def evaluate_checkpoint(checkpoint_dir, scenario: str | None = None, episodes: i
         agent = Agent.build(config, agent.env)
     env = agent.env
     rec, ended, stats = rollout_with_filter_stats(agent, restored["params"], restored["obs_norm"], env, episodes,
-                                                  jax.random.PRNGKey(seed))
+                                                  jax.random.PRNGKey(seed), progress=progress)
     out = {"checkpoint": str(checkpoint_dir), "method": config.method, "scenario": env.config.scenario,
            "num_agents": env.num_agents, "episodes": episodes, "seed": seed, "trained_updates": int(restored["update"]),
            "env_overrides": sorted(env_overrides or []), "episodes_ended": int(np.sum(np.asarray(ended)))}
