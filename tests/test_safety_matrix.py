@@ -118,8 +118,11 @@ def test_identified_drone_flies_apart_from_the_stored_one(tmp_path, monkeypatch)
     from aswarm.analysis import evaluate
 
     flown = []
-    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda run, scenario, n, seed, overrides, progress=None: flown.append(
-        overrides) or {"episodes": n})
+    def fake(run, scenario, n, seed, overrides, progress=None):
+        flown.append(overrides)
+        return {"episodes": n}
+
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", fake)
     dyn = next(c for c in mod.CELLS if c.name == "dynamic-3")
     for drone in ("stored", "identified"):
         assert mod.run_cell(dyn, "sim", "pretrained:dynamic", "dynamic", 2, 1, tmp_path, drone)["status"] == "done"
