@@ -117,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                 jnp.min(geo.cylinder_clearance(pos, cyl_pos, n2.layout.cyl_radius, n2.layout.cyl_height,
                                                n2.layout.cyl_present, r), -1, initial=geo.FAR),
                 jnp.min(geo.drone_clearance(pos, jnp.ones(cfg.num_agents, bool), r), -1, initial=geo.FAR),
-                jnp.min(geo.gate_clearance(pos, n2.layout.gate_pos, n2.layout.gate_yaw, cfg.gate_half_opening,
-                                           cfg.gate_bar, r), -1, initial=geo.FAR),
+                jnp.min(geo.gate_clearance(pos, n2.layout.gate_pos, geo.horizontal(n2.layout.gate_yaw),
+                                           cfg.gate_half_opening, cfg.gate_bar, r), -1, initial=geo.FAR),
                 pos[:, 2] - r], -1)
             x, y = drone.quat[:, 1], drone.quat[:, 2]  # body z against world z: 1 - 2(x² + y²)
             tilt = jnp.degrees(jnp.arccos(jnp.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))

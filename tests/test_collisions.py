@@ -68,12 +68,12 @@ def test_gate_frame_collision_distance():
     edge = 1.0 + 0.3 + 0.025  # centreline of the right bar (y)
     near = jnp.array([[2.0, edge - 0.025 - R - EPS, 1.0]])
     hit = jnp.array([[2.0, edge - 0.025 - R + EPS, 1.0]])
-    assert float(geo.gate_clearance(near, gp, gy, 0.3, 0.05, R)[0, 0]) == pytest.approx(EPS, abs=1e-5)
-    assert float(geo.gate_clearance(hit, gp, gy, 0.3, 0.05, R)[0, 0]) < 0
+    assert float(geo.gate_clearance(near, gp, geo.horizontal(gy), 0.3, 0.05, R)[0, 0]) == pytest.approx(EPS, abs=1e-5)
+    assert float(geo.gate_clearance(hit, gp, geo.horizontal(gy), 0.3, 0.05, R)[0, 0]) < 0
     post = jnp.array([[2.0, 1.0, 0.3]])  # the post below the gate
-    assert float(geo.gate_clearance(post, gp, gy, 0.3, 0.05, R)[0, 0]) < 0
+    assert float(geo.gate_clearance(post, gp, geo.horizontal(gy), 0.3, 0.05, R)[0, 0]) < 0
     centre = jnp.array([[2.0, 1.0, 1.0]])
-    assert float(geo.gate_clearance(centre, gp, gy, 0.3, 0.05, R)[0, 0]) > 0.2
+    assert float(geo.gate_clearance(centre, gp, geo.horizontal(gy), 0.3, 0.05, R)[0, 0]) > 0.2
 
 
 @pytest.mark.parametrize("xp", [np, jnp])
@@ -83,7 +83,7 @@ def test_gate_clearance_closed_form_matches_the_frame_segments(xp):
     frames = geo.gate_frames(centre, yaw, half, bar)  # [G, 5, 2, 3]: the four bars and the post
     pts = rng.uniform([-2.0, -3.0, -0.1], [2.0, 1.5, 2.2], (3000, 3))
     want = np.min(geo.point_segment_distance(pts[:, None, None], frames[None, :, :, 0], frames[None, :, :, 1]), -1)
-    got = geo.gate_clearance(xp.asarray(pts), xp.asarray(centre), xp.asarray(yaw), half, bar, R)
+    got = geo.gate_clearance(xp.asarray(pts), xp.asarray(centre), geo.horizontal(xp.asarray(yaw)), half, bar, R)
     np.testing.assert_allclose(np.asarray(got), want - bar / 2 - R, atol=1e-5)
     assert np.min(want) < 0.05  # some points lie near a bar or the post, not only far away
 

@@ -98,8 +98,8 @@ def test_clearances_hand_derived():
     frames = geo.gate_frames(GATE_POS[None], np.zeros(1), HALF, 0.05)
     assert frames.shape == (1, 5, 2, 3)
     bar = 1.0 + HALF + 0.025
-    c = geo.gate_clearance(np.array([[2.0, bar - 0.2, 1.0], [2.0, 1.0, 0.3]]), GATE_POS[None], np.zeros(1), HALF, 0.05,
-                           R)
+    points = np.array([[2.0, bar - 0.2, 1.0], [2.0, 1.0, 0.3]])
+    c = geo.gate_clearance(points, GATE_POS[None], geo.horizontal(np.zeros(1)), HALF, 0.05, R)
     np.testing.assert_allclose(c[:, 0], [0.2 - 0.025 - R, 0.0 - 0.025 - R], atol=1e-12)
     seg = geo.point_segment_distance(np.array([1.0, 2.0, 0.0]), np.zeros(3), np.array([2.0, 0, 0]))
     np.testing.assert_allclose(seg, 2.0)
@@ -143,8 +143,8 @@ def _geometry_cases():
         "cylinder_clearance": (lambda p, c, r, h: geo.cylinder_clearance(p, c, r, h, np.array([True, False, True]), R),
                                (pos, cyl, RNG.uniform(0.1, 0.3, m), RNG.uniform(0.5, 2, m)), (n, m)),
         "drone_clearance": (lambda p: geo.drone_clearance(p, np.array([True, True, False, True]), R), (pos,), (n, n)),
-        "gate_clearance": (lambda p, c, y: geo.gate_clearance(p, c, y, HALF, 0.05, R), (pos, gate_pos, gate_yaw),
-                           (n, g)),
+        "gate_clearance": (lambda p, c, y: geo.gate_clearance(p, c, geo.horizontal(y), HALF, 0.05, R),
+                           (pos, gate_pos, gate_yaw), (n, g)),
         "out_of_bounds": (lambda p: geo.out_of_bounds(p, (-0.5, -0.5, 0), (0.5, 0.5, 1.5)), (pos,), (n,)),
         "wall_clearance": (lambda p: geo.wall_clearance(p, np.array([-8.0, -6, 0]), np.array([8.0, 6, 3])), (pos,),
                            (n, 5)),

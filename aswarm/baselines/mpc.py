@@ -348,7 +348,7 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
         passed = passed | through
         # Frame clearance where a bar can be hit: at the plane when the step crosses it.
         d_frame = geometry.frame_distance(jnp.where(crosses, 0.0, s1), jnp.where(crosses, hl, l1),
-                                 jnp.where(crosses, hv, v1), cfg.gate_half_opening, cfg.gate_bar, c[2])
+                                          jnp.where(crosses, hv, v1), cfg.gate_half_opening, cfg.gate_bar, c[2])
         d_frame = d_frame - cfg.gate_bar / 2 - r
         # To go before the gate: distance to its centre with the offset from its axis weighed more than the
         # distance along it, so that the drone lines up before the plane (aimed straight at the centre, it
@@ -369,7 +369,7 @@ def make_mpc_policy(env: SwarmEnv, config: MPCConfig = MPCConfig(), *, unroll: b
         q = [p[i] - sc.passed_centre[i] for i in range(3)]
         pn = sc.passed_normal
         d_old = geometry.frame_distance(q[0] * pn[0] + q[1] * pn[1], -q[0] * pn[1] + q[1] * pn[0], q[2],
-                               cfg.gate_half_opening, cfg.gate_bar, sc.passed_centre[2]) - cfg.gate_bar / 2 - r
+                                        cfg.gate_half_opening, cfg.gate_bar, sc.passed_centre[2]) - cfg.gate_bar / 2 - r
         d_frame = jnp.where(sc.passed_valid, jnp.minimum(d_frame, d_old), d_frame)
         frame = config.gate_weight * _barrier(d_frame, config.gate_margin, config.collision_cost)
         return progress + frame, passed

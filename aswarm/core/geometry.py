@@ -157,14 +157,14 @@ def frame_distance(s, lat, vert, half_opening: float, bar: float, height):
     return xp.sqrt(s**2 + xp.minimum(in_plane_square, in_plane_post) ** 2)
 
 
-def gate_clearance(pos, gate_pos, gate_yaw, half_opening: float, bar: float, r: float):
+def gate_clearance(pos, gate_pos, normal, half_opening: float, bar: float, r: float):
     """[..., n, G] gap between drone spheres (radius ``r``) [..., n, 3] and the (round) bars of the gates' frames
-    (:func:`gate_frames`) at gate_pos [..., G, 3], gate_yaw [..., G]."""
-    xp = namespace(pos, gate_pos)
+    (:func:`gate_frames`) at gate_pos [..., G, 3] with directions of passage ``normal`` [..., G, 3]
+    (:func:`horizontal` of their yaws)."""
     rel = pos[..., :, None, :] - gate_pos[..., None, :, :]
-    cos, sin = xp.cos(gate_yaw)[..., None, :], xp.sin(gate_yaw)[..., None, :]
-    along = rel[..., 0] * cos + rel[..., 1] * sin
-    lat = rel[..., 1] * cos - rel[..., 0] * sin
+    nx, ny = normal[..., None, :, 0], normal[..., None, :, 1]
+    along = rel[..., 0] * nx + rel[..., 1] * ny
+    lat = rel[..., 1] * nx - rel[..., 0] * ny
     d = frame_distance(along, lat, rel[..., 2], half_opening, bar, gate_pos[..., None, :, 2])
     return d - bar / 2 - r
 

@@ -232,6 +232,7 @@ class SwarmEnv:
         if cfg.command_accel_limit:  # (static, as the rate penalty)
             cmd = limit_command_change(cmd, state.onboard.commands[0], p.command_step_limit)
         layout = state.layout
+        normals = geo.horizontal(layout.gate_yaw)  # the gates' directions of passage, once a step
         p0 = drone_state(state.data, n).pos
         ob = state.onboard
         dt_ctrl, dt_sim = 1.0 / cfg.ctrl_freq, 1.0 / cfg.sim_freq
@@ -272,7 +273,7 @@ class SwarmEnv:
                 else:
                     target = rpm_cmd
                 d, rpm = physics(d, target, rpm)
-                t, hz = self._check(prev.pos, drone_state(d, n).pos, d.time, layout, t)
+                t, hz = self._check(prev.pos, drone_state(d, n).pos, d.time, layout, normals, t)
                 return (d, pid, mel, rpm, t, jnp.minimum(h, hz)), None
 
             return jax.lax.scan(inner, (data, pid, mel, rpm, tr, hazard), None, length=cfg.ctrl_every)[0], None
@@ -416,15 +417,14 @@ class SwarmEnv:
         params = self.params(params)
         return jnp.abs(along) + params.lateral_weight * off_axis + params.wrong_side_weight * jnp.maximum(along, 0.0)
 
-    def _check(self, prev, pos, t, layout: Layout, tr: Tracker):
+    def _check(self, prev, pos, t, layout: Layout, normals, tr: Tracker):
         """Advance waypoints and detect collisions after one physics step."""
         cfg = self.config
         r = cfg.cf.collision_radius
         active = ~tr.finished
         if self.kind == "track":
             k = jnp.minimum(tr.target, cfg.num_gates - 1)
-            crossed = geo.gate_crossed(prev, pos, layout.gate_pos[k], geo.horizontal(layout.gate_yaw[k]),
-                                       cfg.gate_half_opening)
+            crossed = geo.gate_crossed(prev, pos, layout.gate_pos[k], normals[k], cfg.gate_half_opening)
             target = tr.target + (crossed & active)
             reached = target >= cfg.num_gates
         else:
@@ -436,8 +436,8 @@ class SwarmEnv:
         c_cyl = jnp.min(geo.cylinder_clearance(pos, cyl_pos, layout.cyl_radius, layout.cyl_height,
                                                layout.cyl_present, r), -1, initial=geo.FAR)
         c_drone = jnp.min(geo.drone_clearance(pos, active, r), -1, initial=geo.FAR)
-        c_gate = jnp.min(geo.gate_clearance(pos, layout.gate_pos, layout.gate_yaw, cfg.gate_half_opening,
-                                            cfg.gate_bar, r), -1, initial=geo.FAR)
+        c_gate = jnp.min(geo.gate_clearance(pos, layout.gate_pos, normals, cfg.gate_half_opening, cfg.gate_bar,
+                                            r), -1, initial=geo.FAR)
         c_floor = pos[:, 2] - r
         oob = geo.out_of_bounds(pos, cfg.arena_low, cfg.arena_high)
         gaps = jnp.stack([c_cyl, c_drone, c_gate, c_floor], -1)
