@@ -65,9 +65,11 @@ class AutoResetWrapper(Wrapper):
 
 
 class BatchAutoResetWrapper(Wrapper):
-    """:class:`AutoResetWrapper` around a :class:`VmapWrapper`, with the same numbers, that draws the new
-    episodes only on steps where some world is done: the draws (layout, domain randomisation, the first
-    observation) cost about a tenth of an env step, and most steps of a batch end no episode."""
+    """:class:`AutoResetWrapper` around a :class:`VmapWrapper` that draws the new episodes only on steps where some
+    world is done: the draws (layout, domain randomisation, the first observation) cost about a tenth of an env step
+    on one device, and most steps of a batch end no episode. The same episodes up to float rounding, not bit for bit:
+    XLA compiles the reset inside the ``cond`` on its own, and a new episode's first observation differed by up to
+    1e-5 (BENCHMARKS.md, session 25)."""
 
     def reset(self, key: jax.Array, params=None) -> State:
         keys = self.env.world_keys(key)
