@@ -117,8 +117,7 @@ def _print_timing(run_dir: Path) -> None:
     if not path.exists():  # another process of a multi-host run wrote it
         return
     t = json.loads(path.read_text())
-    minutes, seconds = divmod(t["train_s"], 60)
-    line = f"trained {t['env_steps']:,} env steps in {int(minutes)} min {seconds:.0f} s"
+    line = f"trained {t['env_steps']:,} env steps in {runner.minutes_seconds(t['train_s'])}"
     if t["env_steps_per_s"]:
         line += f": {t['env_steps_per_s']:,.0f} env-steps/s"
     if t["steady_env_steps_per_s"]:

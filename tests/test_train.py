@@ -448,6 +448,12 @@ def test_a_run_writes_its_timing_and_the_command_prints_it(mappo_run, capsys):
     assert line.startswith("trained 1,024 env steps in 0 min") and "after the first chunk" in line, line
 
 
+def test_wall_times_round_to_the_second_before_splitting_minutes():
+    # 659.6 s printed "10 min 60 s" when minutes and seconds were split before rounding.
+    assert [runner.minutes_seconds(s) for s in (0.4, 59.4, 59.6, 659.6, 3600.2)] == [
+        "0 min 0 s", "0 min 59 s", "1 min 0 s", "11 min 0 s", "60 min 0 s"]
+
+
 def _fresh_state(config: TrainConfig, stacked: int = 0):
     """A train state's networks and normaliser as ``make_train``'s init lays them out (the rest is not read)."""
     from brax.training.acme import running_statistics

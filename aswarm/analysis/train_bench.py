@@ -126,7 +126,9 @@ def end_to_end(config, out: Path, target: float = 0.99, episodes: int = 1000, pr
 
 
 def _minutes(s: float | None) -> str:
-    return "never" if s is None else f"{int(s // 60)} min {s % 60:.0f} s"
+    from aswarm.training import runner
+
+    return "never" if s is None else runner.minutes_seconds(s)
 
 
 def format_profile(p: dict, whole: dict) -> list[str]:

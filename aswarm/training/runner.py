@@ -83,6 +83,12 @@ class LoopResult:
 TIMING = "timing.json"  # a run folder's wall time and throughput, as `aswarm train` prints them at the end
 
 
+def minutes_seconds(seconds: float) -> str:
+    """``seconds`` as "M min S s", rounded to the second first (659.6 s is "11 min 0 s", not "10 min 60 s")."""
+    whole = int(round(seconds))
+    return f"{whole // 60} min {whole % 60} s"
+
+
 def chunk_length(updates: int, per_chunk: int) -> int:
     """Updates per chunk for a loop of ``updates``: the largest length from ``per_chunk`` down to a quarter of it
     (at least 2) that divides them, else ``per_chunk``. Each chunk length is its own compiled program (a scan
