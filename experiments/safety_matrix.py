@@ -55,8 +55,9 @@ HEADLINE_EPISODES = 10_000
 CELL_EPISODES = 2_000
 # The largest swarms: an episode of 32 or 64 drones costs 8 or 16 of 4 drones (about 20 min for 2000 of 32 on 2
 # cores), and one of 8 or 16 race drones (60 s) about as much; these still resolve a rate of a few percent to
-# about +-1.5 points.
-LARGE_EPISODES = 1_000  # obstacles-32, race-8
+# about +-1.5 points. race-8 has the 2,000 of a cell with at most 16 drones (about 20 min); race-16, which
+# the 4-drone race policy does not fly (13 % success), keeps 500.
+LARGE_EPISODES = 1_000  # obstacles-32
 LARGEST_EPISODES = 500  # obstacles-64, race-16
 QUICK_EPISODES = 8  # a pipeline check, not a measurement
 # The shipped race policy was selected on seeds 10000 and 20000 and the SITL robustness study flew 30000: the
@@ -144,7 +145,7 @@ CELLS: tuple[Cell, ...] = (
     *(Cell(f"dynamic-{k}-fast", "dynamic", "dynamic", _moving(k, True), pins=ONE_SPEED) for k in DYNAMIC_MOVING),
     Cell("race-moving2", "race-moving", "race", (f"num_obstacles={RACE_SLOTS}", "num_moving=2") + _moving(2, False),
          pins=ONE_SPEED),
-    Cell("race-8", "race-swarm", "race", _drones(8), LARGE_EPISODES),
+    Cell("race-8", "race-swarm", "race", _drones(8)),
     Cell("race-16", "race-swarm", "race", _drones(16), LARGEST_EPISODES),
     Cell("obstacles-8", "obstacles-swarm", "obstacles", _drones(8)),
     Cell("obstacles-16", "obstacles-swarm", "obstacles", _drones(16), HEADLINE_EPISODES, headline=True),
