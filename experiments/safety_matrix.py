@@ -55,7 +55,7 @@ HEADLINE_EPISODES = 10_000
 CELL_EPISODES = 2_000
 # The largest swarms: an episode of 32 or 64 drones costs 8 or 16 of 4 drones (about 20 min for 2000 of 32 on 2
 # cores), and one of 8 or 16 race drones (60 s) about as much; these still resolve a rate of a few percent to
-# about +-1.5 points. race-8 has the 2,000 of a cell with at most 16 drones (about 20 min); race-16, which
+# about +-1.5 points. race-8 has the 2,000 of a cell with at most 16 drones (10 min); race-16, which
 # the 4-drone race policy does not fly (13 % success), keeps 500.
 LARGE_EPISODES = 1_000  # obstacles-32
 LARGEST_EPISODES = 500  # obstacles-64, race-16
