@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import hashlib
 import json
 import sys
 import time
@@ -231,15 +232,37 @@ def newest_step(run: str) -> int | None:
     return max(steps, default=None)
 
 
+def policy_digest(run: str) -> str | None:
+    """A sha256 of the newest checkpoint's policy files (names and bytes): a policy trained again to the same number
+    of updates under the same filter settings is another policy (session 27 replaced ``pretrained:lab`` so)."""
+    from aswarm.analysis.evaluate import run_folder
+
+    step = newest_step(run)
+    folder = run_folder(run) / "checkpoints" / str(step) / "policy"
+    if step is None or not folder.is_dir():
+        return None
+    h = hashlib.sha256()
+    for f in sorted(q for q in folder.rglob("*") if q.is_file()):
+        h.update(f.relative_to(folder).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def policy_filter(run: str) -> dict | None:
     """The safety filter a run's config stores (its ``train.safety_filter``, as written; None where it has none): a
     policy whose filter settings changed flies other episodes than its cached cells (session 14 changed the shipped
     race policy's ``static_slack``)."""
+    train = train_config(run)
+    return train.get("safety_filter") if isinstance(train, dict) else None
+
+
+def train_config(run: str) -> dict | None:
+    """A run's stored training config (``config.json``'s ``train``, as written), or None."""
     from aswarm.analysis.evaluate import run_folder
 
     try:
-        return json.loads((run_folder(run) / "config.json").read_text())["train"].get("safety_filter")
-    except (OSError, json.JSONDecodeError, KeyError, AttributeError):
+        return json.loads((run_folder(run) / "config.json").read_text())["train"]
+    except (OSError, json.JSONDecodeError, KeyError):
         return None
 
 
@@ -248,7 +271,7 @@ def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: s
     when it is not the stored one, so the cells cached before ``--drone`` existed stay valid."""
     key = {"cell": cell.name, "mode": mode, "scenario": cell.scenario, "env_overrides": list(cell.overrides),
            "episodes": episodes, "seed": seed, "policy": run, "policy_step": newest_step(run),
-           "policy_filter": policy_filter(run)}
+           "policy_filter": policy_filter(run), "policy_digest": policy_digest(run)}
     if drone != "stored":
         key["drone"] = drone
     if mode == "sitl":
@@ -257,12 +280,16 @@ def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: s
 
 
 def cached(path: Path, key: dict) -> dict | None:
-    """The finished row stored at ``path`` for ``key``, or None (missing, another key, unreadable)."""
+    """The finished row stored at ``path`` for ``key``, or None (missing, another key, unreadable). A cell cached
+    before keys held the policy's digest matches on the rest of its key."""
     try:
         stored = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-    return stored.get("row") if stored.get("key") == key else None
+    have = stored.get("key")
+    if isinstance(have, dict) and "policy_digest" not in have:
+        key = {k: v for k, v in key.items() if k != "policy_digest"}
+    return stored.get("row") if have == key else None
 
 
 def one_line(e: Exception) -> str:
@@ -279,10 +306,11 @@ def bundle_for(name: str, run: str, out: Path, swarm: list[str]) -> Path:
     manifest = path / "manifest.json"
     if manifest.is_file():
         source = json.loads(manifest.read_text()).get("source", {})
-        # The filter settings too: a shipped policy's config may change them without new checkpoints.
+        # The whole training config too: a shipped policy's config may change its filter settings without new
+        # checkpoints, and one trained again (another gamma or seed) may stop at the same update.
         if (source.get("checkpoint") == run and source.get("trained_updates") == newest_step(run)
                 and source.get("export_env_overrides", []) == sorted(swarm)
-                and source.get("train_config", {}).get("safety_filter") == policy_filter(run)):
+                and source.get("train_config") == train_config(run)):
             return path
     return export.export(run, path, force=path.exists(), env_overrides=swarm)
 

@@ -100,6 +100,32 @@ def test_cached_cell_is_recomputed_when_its_key_changes(tmp_path):
     assert mod.cached(path, key) is None
 
 
+def test_a_policy_trained_again_to_the_same_update_is_another_policy(tmp_path):
+    mod = _module()
+    cell = mod.CELLS[0]
+    from aswarm.analysis import evaluate
+
+    runs = []
+    for weights in (b"first", b"second"):  # the same config, the same step, other weights
+        run = tmp_path / weights.decode()
+        (run / "checkpoints" / "488" / "policy" / "d").mkdir(parents=True)
+        (run / "checkpoints" / "488" / "policy" / "d" / "blob").write_bytes(weights)
+        (run / "config.json").write_text((evaluate.PRETRAINED / "config.json").read_text())
+        runs.append(str(run))
+    first, second = (mod.cell_key(cell, "sim", r, 8, 1) for r in runs)
+    assert first["policy_step"] == second["policy_step"] == 488 and first["policy_digest"] != second["policy_digest"]
+    path = tmp_path / "race.json"
+    mod.write_atomic(path, json.dumps({"key": first, "row": {"status": "done"}}))
+    assert mod.cached(path, first) == {"status": "done"}
+    second_at_first = {**second, "policy": first["policy"]}  # even under the first's name (a shipped folder replaced)
+    assert mod.cached(path, second_at_first) is None
+    # A cell cached before keys held the digest matches on the rest of its key.
+    legacy = {k: v for k, v in first.items() if k != "policy_digest"}
+    mod.write_atomic(path, json.dumps({"key": legacy, "row": {"status": "done"}}))
+    assert mod.cached(path, first) == {"status": "done"}
+    assert mod.cached(path, {**first, "seed": 2}) is None
+
+
 def test_identified_drone_flies_apart_from_the_stored_one(tmp_path, monkeypatch):
     mod = _module()
     cell = mod.CELLS[0]
@@ -129,9 +155,10 @@ def test_identified_drone_flies_apart_from_the_stored_one(tmp_path, monkeypatch)
     assert flown == [dyn.flown, dyn.flown + ["cf.motor_tau_down=0.108"]]
 
 
-def test_a_bundle_is_exported_again_when_the_policy_filter_changes(tmp_path, monkeypatch):
+def test_a_bundle_is_exported_again_when_the_policy_config_changes(tmp_path, monkeypatch):
     """A shipped policy's config may change its filter without new checkpoints (pretrained:dynamic's moving-cylinder
-    gain cap): its SITL cells must not fly the bundle exported before."""
+    gain cap), or the policy be trained again to the same update (another gamma): its SITL cells must not fly the
+    bundle exported before."""
     mod = _module()
     from aswarm.flight import export
 
@@ -140,13 +167,14 @@ def test_a_bundle_is_exported_again_when_the_policy_filter_changes(tmp_path, mon
     folder = tmp_path / "bundles" / "dynamic"
     folder.mkdir(parents=True)
     source = {"checkpoint": "pretrained:dynamic", "trained_updates": mod.newest_step("pretrained:dynamic"),
-              "export_env_overrides": [], "train_config": {"safety_filter": mod.policy_filter("pretrained:dynamic")}}
+              "export_env_overrides": [], "train_config": mod.train_config("pretrained:dynamic")}
     (folder / "manifest.json").write_text(json.dumps({"source": source}))
     assert mod.bundle_for("dynamic", "pretrained:dynamic", tmp_path, []) == folder and calls == []
-    source["train_config"]["safety_filter"] = {**source["train_config"]["safety_filter"], "moving_gain_max": 0.0}
-    (folder / "manifest.json").write_text(json.dumps({"source": source}))
-    mod.bundle_for("dynamic", "pretrained:dynamic", tmp_path, [])
-    assert calls == ["pretrained:dynamic"]
+    train = source["train_config"]
+    for changed in ({"safety_filter": {**train["safety_filter"], "moving_gain_max": 0.0}}, {"gamma": 0.99}):
+        (folder / "manifest.json").write_text(json.dumps({"source": {**source, "train_config": {**train, **changed}}}))
+        mod.bundle_for("dynamic", "pretrained:dynamic", tmp_path, [])
+    assert calls == ["pretrained:dynamic"] * 2
 
 
 def test_cells_of_the_issue():
