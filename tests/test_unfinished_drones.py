@@ -1,0 +1,45 @@
+"""experiments/unfinished_drones.py: the rows of a timed-out episode, against a hand-built one."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("unfinished_drones", ROOT / "experiments" / "unfinished_drones.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_unfinished_rows_by_hand():
+    # 4 drones, 4 instants: drone 0 finished, drone 3 collided, drones 1 and 2 still flying; drone 1 hovers 3-4-5
+    # from where drone 2 ends.
+    pos = np.zeros((4, 4, 3))
+    pos[:, 2] = [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.0, 0.0, 1.0]]  # stopped for the last step
+    pos[:, 1] = [3.0, 4.0, 1.0]
+    pos[:, 3] = [2.0, 0.5, 1.0]  # nearer to drone 2 than drone 1 is, but out of the episode
+    goal = np.array([[9.0, 9.0, 1.0], [3.0, 4.0, 2.0], [5.0, 4.0, 1.0], [0.0, 0.0, 1.0]])
+    finished, collided = np.array([True, False, False, False]), np.array([False, False, False, True])
+    flying = np.broadcast_to(~(finished | collided), (4, 4))
+    rows = _module().unfinished(pos, goal, finished, collided, flying, steps_back=2)
+    assert [r["drone"] for r in rows] == [1, 2]
+    r = rows[1]
+    np.testing.assert_allclose(r["gap"], 5.0)  # (2, 0) to (5, 4)
+    np.testing.assert_allclose(r["nearest"], np.hypot(1.0, 4.0))  # drone 1; the collided drone 3 is not flying
+    np.testing.assert_allclose(r["moved"], 1.0)  # instant 1 to 3: x 1 -> 2
+    np.testing.assert_allclose(r["start"], [0.0, 0.0, 1.0])
+    np.testing.assert_allclose([rows[0]["gap"], rows[0]["moved"]], [1.0, 0.0])
+
+
+def test_alone_drone_has_no_nearest():
+    pos = np.zeros((2, 2, 3))
+    pos[:, 1, 0] = 1.0
+    flying = np.array([[True, True], [False, True]])
+    rows = _module().unfinished(pos, np.ones((2, 3)), np.array([True, False]), np.zeros(2, bool), flying, 5)
+    assert rows[0]["nearest"] == float("inf") and rows[0]["moved"] == 0.0
