@@ -1,20 +1,14 @@
 """experiments/paper_table.py --quick runs end to end: train, evaluate (with and without the filter), tabulate."""
 
 import csv
-import importlib.util
-from pathlib import Path
 
 import pytest
 from drones import GEOMETRIC_FLAGS
-
-ROOT = Path(__file__).resolve().parent.parent
+from experiment_scripts import load
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("paper_table", ROOT / "experiments" / "paper_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("paper_table")
 
 
 def test_quick_table_runs_end_to_end(tmp_path):

@@ -1,21 +1,12 @@
 """experiments/race_time_budget.py: the time budget of recorded flights, against hand-counted numbers."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
+from experiment_scripts import load
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("race_time_budget", ROOT / "experiments" / "race_time_budget.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load("race_time_budget")
 
 
 def test_the_budget_splits_flight_time_by_segment_and_speed_hand_counted():

@@ -1,21 +1,13 @@
 """experiments/safety_matrix.py --quick runs end to end with the shipped race policy, caches its cells, reuses them."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
+from experiment_scripts import load
 
 
 def _module(name: str = "safety_matrix"):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses look their module up while they are built
-    spec.loader.exec_module(mod)
-    return mod
+    return load(name)
 
 
 def test_quick_matrix_runs_caches_and_reuses_its_cells(tmp_path, capsys, monkeypatch):

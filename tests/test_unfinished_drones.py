@@ -1,20 +1,11 @@
 """experiments/unfinished_drones.py: the rows of a timed-out episode, against a hand-built one."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
+from experiment_scripts import load
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("unfinished_drones", ROOT / "experiments" / "unfinished_drones.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load("unfinished_drones")
 
 
 def test_unfinished_rows_by_hand():
