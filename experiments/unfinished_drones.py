@@ -31,8 +31,7 @@ def unfinished(pos: np.ndarray, goal: np.ndarray, finished: np.ndarray, collided
         others = np.flatnonzero(flying[-1] & (np.arange(len(end)) != d))
         near = float(np.min(np.linalg.norm(end[others] - end[d], axis=-1))) if len(others) else float("inf")
         rows.append(dict(drone=int(d), pos=end[d], goal=goal[d], gap=float(np.linalg.norm(end[d] - goal[d])),
-                         nearest=near, moved=float(np.linalg.norm(end[d] - pos[max(0, len(pos) - 1 - steps_back), d])),
-                         start=pos[0, d]))
+                         nearest=near, moved=float(np.linalg.norm(end[d] - pos[max(0, len(pos) - 1 - steps_back), d]))))
     return rows
 
 

@@ -24,7 +24,6 @@ def test_unfinished_rows_by_hand():
     np.testing.assert_allclose(r["gap"], 5.0)  # (2, 0) to (5, 4)
     np.testing.assert_allclose(r["nearest"], np.hypot(1.0, 4.0))  # drone 1; the collided drone 3 is not flying
     np.testing.assert_allclose(r["moved"], 1.0)  # instant 1 to 3: x 1 -> 2
-    np.testing.assert_allclose(r["start"], [0.0, 0.0, 1.0])
     np.testing.assert_allclose([rows[0]["gap"], rows[0]["moved"]], [1.0, 0.0])
 
 
