@@ -12,6 +12,7 @@ import pytest
 from aswarm import envs
 from aswarm.core import geometry as geo
 from aswarm.core.command import limit_change
+from aswarm.core.safety import SafetyFilterConfig
 from aswarm.envs.dynamics import DroneState, set_drone_state
 from aswarm.envs.randomization import OFF
 
@@ -348,8 +349,8 @@ def test_crossing_swarms_start_apart_inside_the_arena_in_lines_of_at_most_16(n):
         gap = np.linalg.norm(p[:, None] - p[None], axis=-1) + np.eye(n) * 9
         assert gap.min() == pytest.approx(5.0 / 15, abs=1e-5)  # 16 lanes over 5 m of the 7 m wide arena
         assert np.all(p[:, :2] >= lo[:2] + 0.4 - 1e-5) and np.all(p[:, :2] <= hi[:2] - 0.4 + 1e-5)
-    # Jittered the most (0.2 m), a goal still lies outside the filter's wall barrier (radius 0.06 + margin 0.13).
-    assert np.all(goal[:, 0] + 0.2 <= hi[0] - (env.config.cf.collision_radius + 0.13))
+    # Jittered the most (0.2 m), a goal still lies outside the filter's wall barrier (drone radius + default margin).
+    assert np.all(goal[:, 0] + 0.2 <= hi[0] - (env.config.cf.collision_radius + SafetyFilterConfig().margin))
     lines = sorted(set(np.round(start[:, 0], 4)))
     assert len(lines) == n // 16  # 32: lines at x = -4 and -4.5; 64: -4, -4.367, -4.733, -5.1 (1.1 m of room)
     assert lines[-1] == pytest.approx(-4.0) and (n < 64 or lines[0] == pytest.approx(-5.1))
