@@ -24,7 +24,7 @@ swarm size: ``aswarm export --env num_agents=16``) into
 Episodes start from ``--seed`` (default 50000): the shipped race policy was chosen on the episodes of seeds
 10000 and 20000 (the evaluation seed and the one after it), so the matrix flies episodes no choice was made on.
 Each finished cell is kept in ``OUT/cells/CELL.json`` (``OUT/cells-quick/`` with ``--quick``) with its episodes,
-seed, policy and drone; a re-run reuses it when those match. Writes ``OUT/safety_matrix.md`` and ``.json``
+seed, policy, drone and (not with ``--quick``) a digest of its layouts; a re-run reuses it when those match. Writes ``OUT/safety_matrix.md`` and ``.json``
 (``safety_matrix_quick.*`` with ``--quick``).
 
 ``--drone stored`` (the default) flies each policy on the drone its run stored (the shipped policies trained before
@@ -266,12 +266,29 @@ def train_config(run: str) -> dict | None:
         return None
 
 
-def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: str = "stored") -> dict:
+def layout_digest(cell: Cell, run: str, seed: int, drone: str = "stored") -> str:
+    """A digest of the layouts ``cell`` draws from ``seed`` on ``run``'s env (scenarios.layout_digest): an edit of
+    the layout code that moves this cell's starts, goals, gates or cylinders makes its cached row stale (session 28
+    moved the 64-drone crossing's back line and had to remove that cell by hand)."""
+    from aswarm.analysis.evaluate import eval_env_config, run_folder
+    from aswarm.envs.scenarios import layout_digest as digest
+    from aswarm.training import checkpoint
+
+    config = checkpoint.load_config(run_folder(run))
+    return digest(eval_env_config(config, cell.scenario, cell.flown + list(DRONES[drone])), seed)
+
+
+def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: str = "stored",
+             layout: str | None = None) -> dict:
     """What a cached cell must match to be reused (JSON round-tripped, as it is read back). ``drone`` enters only
-    when it is not the stored one, so the cells cached before ``--drone`` existed stay valid."""
+    when it is not the stored one, so the cells cached before ``--drone`` existed stay valid; ``layout``
+    (:func:`layout_digest`) where given: the full run gives it, ``--quick`` (a pipeline check with its own cache)
+    does not pay its compile per cell."""
     key = {"cell": cell.name, "mode": mode, "scenario": cell.scenario, "env_overrides": list(cell.overrides),
            "episodes": episodes, "seed": seed, "policy": run, "policy_step": newest_step(run),
            "policy_filter": policy_filter(run), "policy_digest": policy_digest(run)}
+    if layout is not None:
+        key["layout"] = layout
     if drone != "stored":
         key["drone"] = drone
     if mode == "sitl":
@@ -281,14 +298,14 @@ def cell_key(cell: Cell, mode: str, run: str, episodes: int, seed: int, drone: s
 
 def cached(path: Path, key: dict) -> dict | None:
     """The finished row stored at ``path`` for ``key``, or None (missing, another key, unreadable). A cell cached
-    before keys held the policy's digest matches on the rest of its key."""
+    before keys held the policy's digest or the layout's matches on the rest of its key."""
     try:
         stored = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
     have = stored.get("key")
-    if isinstance(have, dict) and "policy_digest" not in have:
-        key = {k: v for k, v in key.items() if k != "policy_digest"}
+    if isinstance(have, dict):
+        key = {k: v for k, v in key.items() if k in have or k not in ("policy_digest", "layout")}
     return stored.get("row") if have == key else None
 
 
@@ -379,7 +396,8 @@ def matrix(args: argparse.Namespace) -> list[dict]:
         key, run = chosen
         base["policy"] = run
         path = cache / f"{cell.name}{'-sitl' if mode == 'sitl' else ''}.json"
-        want = cell_key(cell, mode, run, episodes, args.seed, args.drone)
+        layout = None if args.quick else layout_digest(cell, run, args.seed, args.drone)
+        want = cell_key(cell, mode, run, episodes, args.seed, args.drone, layout)
         row = cached(path, want)
         if row is not None:
             progress(f"reused {path}")

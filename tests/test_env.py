@@ -358,6 +358,21 @@ def test_crossing_swarms_start_apart_inside_the_arena_in_lines_of_at_most_16(n):
     np.testing.assert_allclose(goal[:, 0] + start[:, 0], 0.0, atol=1e-5)
 
 
+def test_layout_digest_changes_with_the_layouts_and_only_with_them(monkeypatch):
+    """What the safety matrix's cache keys on: session 28's move of the crossing's back line (CROSSING_WALL_GAP)
+    changes the 64-drone crossing's digest and leaves the 16-drone one's, whose lines did not move."""
+    from aswarm.envs import scenarios
+    from aswarm.envs.registry import preset
+
+    small, large = (dataclasses.replace(preset("obstacles"), num_agents=n, max_neighbours=3) for n in (16, 64))
+    before = [scenarios.layout_digest(c, 0, count=2) for c in (small, large)]
+    assert before[0] == scenarios.layout_digest(small, 0, count=2)
+    assert before[0] != scenarios.layout_digest(small, 1, count=2)
+    monkeypatch.setattr(scenarios, "CROSSING_WALL_GAP", 0.3)
+    after = [scenarios.layout_digest(c, 0, count=2) for c in (small, large)]
+    assert after[0] == before[0] and after[1] != before[1]
+
+
 def test_the_filters_observation_adds_nearest_neighbours_after_the_policys_own():
     """``filter_neighbours``: the safety filter's observation (``State.filter_obs``) holds the K_f nearest drones,
     through the same motion-capture noise and delay, and begins with the policy's observation, which is the one the

@@ -92,6 +92,26 @@ def test_cached_cell_is_recomputed_when_its_key_changes(tmp_path):
     assert mod.cached(path, key) is None
 
 
+def test_a_cell_whose_layouts_changed_is_flown_again(tmp_path):
+    """The full run's key holds a digest of the cell's layouts: a row cached from other layouts is stale; one
+    cached before keys held the digest still matches on the rest."""
+    mod = _module()
+    cell = mod.CELLS[0]
+    before = mod.cell_key(cell, "sim", "pretrained", 8, 1)
+    first, moved = (mod.cell_key(cell, "sim", "pretrained", 8, 1, layout=d) for d in ("aaa", "bbb"))
+    assert "layout" not in before and first == {**before, "layout": "aaa"}
+    path = tmp_path / "race.json"
+    mod.write_atomic(path, json.dumps({"key": first, "row": {"status": "done"}}))
+    assert mod.cached(path, first) == {"status": "done"} and mod.cached(path, moved) is None
+    mod.write_atomic(path, json.dumps({"key": before, "row": {"status": "done"}}))
+    assert mod.cached(path, moved) == {"status": "done"}
+    # The digest the full run gives: of the policy's env with the cell's overrides, on the drone flown.
+    swarm = next(c for c in mod.CELLS if c.name == "obstacles-64")
+    a = mod.layout_digest(swarm, "pretrained:obstacles16", 1, "identified")
+    assert a == mod.layout_digest(swarm, "pretrained:obstacles16", 1, "identified")
+    assert a != mod.layout_digest(swarm, "pretrained:obstacles16", 2, "identified")
+
+
 def test_a_policy_trained_again_to_the_same_update_is_another_policy(tmp_path):
     mod = _module()
     cell = mod.CELLS[0]

@@ -200,6 +200,17 @@ def load(checkpoint_dir: str | Path):
     return config, checkpoint.restore(mngr, like, item="policy")
 
 
+def eval_env_config(config: TrainConfig, scenario: str | None = None,
+                    env_overrides: list[str] | None = None) -> envs.EnvConfig:
+    """The env a run's policy is evaluated on (see :func:`load_agent`), without loading its networks."""
+    extra = config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
+    if scenario is None or scenario == config.scenario:
+        return config_args.replace_fields(config.env, extra)
+    from aswarm.envs import registry
+
+    return config_args.replace_fields(registry.preset(scenario), {**dict(config.env_overrides), **extra})
+
+
 def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
                env_overrides: list[str] | None = None) -> tuple[TrainConfig, Agent, dict]:
     """(config, agent on the evaluation env, {params, obs_norm, update}) of a checkpoint.
@@ -210,14 +221,8 @@ def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
     says why when the networks cannot run on it.
     """
     config, restored = load(checkpoint_dir)
-    extra = config_args.parse_assignments(env_overrides or [], envs.EnvConfig)
     trained = envs.SwarmEnv(config.env)
-    if scenario is None or scenario == config.scenario:
-        env_config = config_args.replace_fields(config.env, extra)
-    else:
-        from aswarm.envs import registry
-
-        env_config = config_args.replace_fields(registry.preset(scenario), {**dict(config.env_overrides), **extra})
+    env_config = eval_env_config(config, scenario, env_overrides)
     env = trained if env_config == config.env else envs.SwarmEnv(env_config)
     # The actor and the filter run per drone on its own observation row, so a policy flies any number of drones
     # whose rows have its layout (max_neighbours fixes the neighbour rows); the centralized critics, which do
