@@ -24,7 +24,8 @@ swarm size: ``aswarm export --env num_agents=16``) into
 Episodes start from ``--seed`` (default 50000): the shipped race policy was chosen on the episodes of seeds
 10000 and 20000 (the evaluation seed and the one after it), so the matrix flies episodes no choice was made on.
 Each finished cell is kept in ``OUT/cells/CELL.json`` (``OUT/cells-quick/`` with ``--quick``) with its episodes,
-seed, policy, drone and (not with ``--quick``) a digest of its layouts; a re-run reuses it when those match. Writes ``OUT/safety_matrix.md`` and ``.json``
+seed, policy, drone and (not with ``--quick``) a digest of its layouts; a re-run reuses it when those match.
+Writes ``OUT/safety_matrix.md`` and ``.json``
 (``safety_matrix_quick.*`` with ``--quick``).
 
 ``--drone stored`` (the default) flies each policy on the drone its run stored (the shipped policies trained before
@@ -396,7 +397,9 @@ def matrix(args: argparse.Namespace) -> list[dict]:
         key, run = chosen
         base["policy"] = run
         path = cache / f"{cell.name}{'-sitl' if mode == 'sitl' else ''}.json"
-        layout = None if args.quick else layout_digest(cell, run, args.seed, args.drone)
+        # The layouts' digest costs a compile: drawn only for a cell that is flown or may be reused.
+        layout = (None if args.quick or not (selected or path.is_file())
+                  else layout_digest(cell, run, args.seed, args.drone))
         want = cell_key(cell, mode, run, episodes, args.seed, args.drone, layout)
         row = cached(path, want)
         if row is not None:
