@@ -10,6 +10,7 @@ obstacles, their offsets, moving obstacles' phases, start positions.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from typing import NamedTuple
 
@@ -272,8 +273,6 @@ def layout_digest(cfg: EnvConfig, seed: int, count: int = 8) -> str:
     """A sha256 of the first ``count`` layouts drawn from ``seed`` under ``cfg`` (its default moving-cylinder
     amplitude and period): an edit of the layout code that changes what a config's episodes look like changes
     it, a comment or a refactor does not. Cached results key on it (the safety matrix's cells)."""
-    import hashlib
-
     geo = geometry(cfg)
     keys = jax.random.split(jax.random.PRNGKey(seed), count)
     draw = jax.jit(jax.vmap(lambda k: sample_layout(k, cfg, geo, cfg.moving_amplitude, 2 * np.pi / cfg.moving_period)))
