@@ -205,8 +205,10 @@ def test_cells_of_the_issue():
     assert moving == {n for n, c in by.items() if "moving_speed_scale=1.0,1.0" in c.flown} and len(moving) == 7
     # --episodes sets every cell's, but the largest swarms keep their fewer.
     got = [mod.episodes_of(by[c], False, 2000) for c in ("race", "race-8", "race-16", "obstacles-32", "obstacles-64")]
-    assert got == [2000, 2000, 500, 1000, 500]
-    assert by["race-8"].episodes == mod.CELL_EPISODES  # the issue's 2,000 for a cell with at most 16 drones
+    assert got == [2000, 2000, 2000, 1000, 500]
+    # The issue's 2,000 for a cell with at most 16 drones; race-16 on its own clock, the race's doubled.
+    assert by["race-8"].episodes == by["race-16"].episodes == mod.CELL_EPISODES
+    assert by["race-16"].overrides[-1] == "episode_seconds=120.0"
     assert [mod.episodes_of(by[c], True, 2) for c in ("race", "obstacles-64")] == [2, 2]
     # A cell's own policy wins over its kind's.
     policies = {"dynamic": "runs/a", "dynamic-1": "runs/b"}

@@ -3,6 +3,7 @@
 import dataclasses
 import functools
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -445,7 +446,8 @@ def test_a_run_writes_its_timing_and_the_command_prints_it(mappo_run, capsys):
     assert 0 <= t["host_s"] < t["loop_s"] and t["steady_env_steps_per_s"] > 0
     cli._print_timing(run)
     line = capsys.readouterr().out.strip()
-    assert line.startswith("trained 1,024 env steps in 0 min") and "after the first chunk" in line, line
+    # (Minutes: the tiny run takes seconds, but a loaded machine has taken it past one.)
+    assert re.match(r"trained 1,024 env steps in \d+ min \d+ s", line) and "after the first chunk" in line, line
 
 
 def test_wall_times_round_to_the_second_before_splitting_minutes():
@@ -500,3 +502,27 @@ def test_init_from_a_policy_of_another_observation_layout_is_a_clear_error():
         runner.warm_start(_fresh_state(config), config.init_from)
     with pytest.raises(checkpoint.CheckpointError, match="unknown shipped policy 'pretrained:nope'"):
         runner.warm_start(_fresh_state(config), "pretrained:nope")
+
+
+def test_the_gain_target_spans_the_fitted_range_the_network_outputs():
+    """On the firmware drone the filter's gains are fitted (scaled down) to its lag. The CBF loss's target must span
+    the same range as the network: with the config's unfitted bounds, the target where no cost follows (2.0) lay
+    above anything the network could output (1.47), which pinned it at its maximum in every state (session 30)."""
+    from aswarm.agents import losses
+    from aswarm.agents.train import make_trainer
+
+    hover = dict(SMALL, env_overrides=())  # the default drone: firmware PID, rotor lag, fitted gains
+    t = make_trainer(TrainConfig(method="attention_cbf", **hover))
+    sf, cbf = TrainConfig().safety_filter, t.agent.cbf
+    assert cbf.gain_max < sf.gain_max  # fitted: this test means something only where the range was scaled
+    h = t.hparams({})
+    assert (h["gain_min"], h["gain_max"]) == pytest.approx((cbf.gain_min, cbf.gain_max))
+    target = losses.gain_target(jnp.array([0.0, 0.5, 3.0]), h["gain_min"], h["gain_max"])
+    np.testing.assert_allclose(target, [cbf.gain_max, (cbf.gain_min + cbf.gain_max) / 2, cbf.gain_min], rtol=1e-6)
+    # Swept bounds are the config's numbers, fitted the same way.
+    swept = make_trainer(TrainConfig(method="attention_cbf", **hover), ("gain_max",))
+    assert swept.hparams({"gain_max": 1.6})["gain_max"] == pytest.approx(1.6 * cbf.gain_max / sf.gain_max)
+    # A filter not fitted to its drone keeps the config's numbers.
+    unfitted = SafetyFilterConfig(fit_to_drone=False)
+    plain = make_trainer(TrainConfig(method="attention_cbf", safety_filter=unfitted, **SMALL)).hparams({})
+    assert (plain["gain_min"], plain["gain_max"]) == (sf.gain_min, sf.gain_max)

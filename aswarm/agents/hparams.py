@@ -62,9 +62,16 @@ def check_values(fields: tuple[str, ...], values: Mapping | None) -> dict:
     return values
 
 
-def resolve(config: TrainConfig, values: Mapping) -> dict:
-    """Every value field: the traced value where swept, else the config's Python float (the default numbers)."""
-    return {f: values[f] if f in values else value(config, f) for f in VALUE_FIELDS}
+def resolve(config: TrainConfig, values: Mapping, gain_scale: float = 1.0) -> dict:
+    """Every value field: the traced value where swept, else the config's Python float (the default numbers).
+
+    ``gain_scale``: the factor the safety filter's gains were fitted to the drone by (``SafetyFilterConfig.fitted``),
+    applied to ``gain_min`` and ``gain_max``, swept or not: the CBF network's output range and its loss's target
+    are then the fitted range the filter flies."""
+    h = {f: values[f] if f in values else value(config, f) for f in VALUE_FIELDS}
+    if gain_scale != 1.0:  # (a static choice: an unfitted config keeps its exact numbers)
+        h.update({f: h[f] * gain_scale for f in SAFETY_FIELDS})
+    return h
 
 
 def values_of(config: TrainConfig, fields: Sequence[str]) -> dict:

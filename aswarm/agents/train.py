@@ -219,6 +219,7 @@ class Trainer:
     learn: Callable  # (ts, env_state, transitions, permutation key) -> (TrainState, metrics)
     update_chunk: Callable  # (ts, n) -> (TrainState, metrics [n])
     train: Callable  # (key[, values]) -> (TrainState, metrics [num_updates])
+    hparams: Callable  # (values) -> every value hyperparameter the update reads (hparams.resolve, gains fitted)
 
 
 def make_train(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_rows=None):
@@ -241,6 +242,13 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
     shard_rows = shard_rows or (lambda x: x)
     agent = Agent.build(config)
     env = agent.env
+    # The network's gain range is the fitted one (Agent.build); its target and any swept bounds must be too. Until
+    # session 30 they were the config's: on the firmware drone the target (2.0 where no cost followed) lay above the
+    # network's reach (1.47), which pinned its output at the top of its range in every state (README).
+    gain_scale = agent.config.safety_filter.gain_max / config.safety_filter.gain_max
+
+    def resolve(values) -> dict:
+        return hparams.resolve(config, values, gain_scale)
     wenv = envs.wrap_for_training(env, config.num_envs)
     n, d = env.num_agents, env.observation_size
     b = config.num_envs
@@ -259,7 +267,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
         if "lagrange_init" in values:
             params["lagrange"] = jnp.asarray(values["lagrange_init"], jnp.float32)
         obs_norm = running_statistics.init_state(jax.ShapeDtypeStruct((d,), jnp.float32))
-        optimizer = make_optimizer(config, hparams.resolve(config, values))
+        optimizer = make_optimizer(config, resolve(values))
         target = {k: params[k] for k in ("critic", "cost_critic")} if config.target_tau > 0 else {}
         ts = TrainState(params=params, opt_state=optimizer.init(params), obs_norm=obs_norm,
                         env_state=wenv.reset(k_env), key=k_run, update=jnp.zeros((), jnp.int32),
@@ -269,7 +277,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
         return jax.tree.map(lambda x: jnp.asarray(x).astype(jnp.asarray(x).dtype), ts)
 
     def rollout(ts: TrainState, key: jax.Array):
-        h = hparams.resolve(config, ts.hparams)
+        h = resolve(ts.hparams)
         ag = agent_for(h)
 
         def step(env_state, k):
@@ -334,7 +342,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
     def learn(ts: TrainState, env_state, tr: Transition, k_perm: jax.Array):
         """The update after its rollout (which reached ``env_state``): GAE, the epochs of minibatch steps over
         permutations drawn from ``k_perm``, the metrics. The state's key is left to the caller."""
-        h = hparams.resolve(config, ts.hparams)
+        h = resolve(ts.hparams)
         optimizer = make_optimizer(config, h)
         critics = {**ts.params, **ts.target}  # the target critics, where there are any, bootstrap GAE
         v, vc = values(critics, ts.obs_norm, tr.obs)
@@ -395,4 +403,4 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
     def train(key: jax.Array, values: dict | None = None):
         return update_chunk(init(key, values), config.num_updates)
 
-    return Trainer(agent, init, rollout, learn, update_chunk, train)
+    return Trainer(agent, init, rollout, learn, update_chunk, train, resolve)
