@@ -249,6 +249,7 @@ def make_trainer(config: TrainConfig, sweep_fields: tuple[str, ...] = (), shard_
 
     def resolve(values) -> dict:
         return hparams.resolve(config, values, gain_scale)
+
     wenv = envs.wrap_for_training(env, config.num_envs)
     n, d = env.num_agents, env.observation_size
     b = config.num_envs
