@@ -5,7 +5,8 @@ let a drone be permissive far from hazards and conservative near them?).
         --out experiments/results/gain_profile
 
 For each checkpoint, ``episodes`` episodes of the deterministic, filtered policy (as ``aswarm eval`` flies them,
-episode i from the i-th key of the seed); at every step of every drone still flying, the gain its filter applied and
+episode i from the i-th key of the seed); at every step of every drone still flying, the network's gain (what its
+filter applies to every row but the moving cylinders' where ``moving_gain_max`` caps them) and
 its smallest observed clearance to a cylinder or a neighbour (the observation's cylinder clearance; a neighbour's
 centre distance less two drone radii). Writes ``gain_profile.md`` (the gain by clearance bin: mean, 5th and 95th
 percentiles, and the share of drone-steps within 1 % of the top of the network's range) and ``gain_profile.png``.
@@ -27,7 +28,7 @@ TOP_SHARE = 0.01
 
 
 def record(checkpoint: str, episodes: int, seed: int, env_overrides: list[str]) -> dict:
-    """{gain, clearance: [drone-steps flying], gain_min, gain_max, method} of ``episodes`` episodes."""
+    """{gain, clearance: [drone-steps flying], gain_min, gain_max} of ``episodes`` episodes."""
     import jax
     import jax.numpy as jnp
 
@@ -65,7 +66,7 @@ def record(checkpoint: str, episodes: int, seed: int, env_overrides: list[str]) 
                                                                                       episodes)))
     net = agent.cbf  # its output range: the filter's, fitted to the drone
     return dict(gain=gain[flying], clearance=clearance[flying], gain_min=float(net.gain_min),
-                gain_max=float(net.gain_max), method=config.method)
+                gain_max=float(net.gain_max))
 
 
 def profile(rec: dict) -> list[dict]:

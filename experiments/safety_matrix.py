@@ -58,7 +58,7 @@ HEADLINE_EPISODES = 10_000
 CELL_EPISODES = 2_000
 # The largest swarms: an episode of 32 or 64 drones costs 8 or 16 of 4 drones (about 20 min for 2000 of 32 on 2
 # cores); these still resolve a rate of a few percent to about +-1.5 points. race-8 and race-16 have the issue's
-# 2,000 of a cell with at most 16 drones (10 min and about an hour).
+# 2,000 of a cell with at most 16 drones (10 min; race-16's 120 s episodes 2 h 19 min beside training, session 30).
 LARGE_EPISODES = 1_000  # obstacles-32
 LARGEST_EPISODES = 500  # obstacles-64
 # s: race-16's clock, twice the 4-drone race's (60 s). Sixteen drones are released a second apart (15 s for the column)
