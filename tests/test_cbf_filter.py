@@ -17,7 +17,7 @@ from qp_reference import osqp_qp, reference_qp
 from aswarm.agents.cbf_filter import FilterResult, filter_velocity
 from aswarm.core import barriers
 from aswarm.core.barriers import Rows, barrier_rows, cylinder_rows, floor_row, neighbour_rows
-from aswarm.core.layout import CYL, ObsLayout
+from aswarm.core.layout import CYL, NBR, ObsLayout
 from aswarm.core.safety import LEGACY_FIELDS, SafetyFilterConfig, from_manifest, manifest_fields, nest_legacy
 from aswarm.flight import cbf as np_cbf
 
@@ -535,6 +535,21 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
                                                                 now, rate).u)(
             jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel), jnp.asarray(applied))
     np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
+    # The neighbours' braking rows on top, the same in both; they change the commands where no cylinder's row (whose
+    # slack the neighbours' share) decides them, so the scene's cylinders are taken away.
+    own, cyl, nbr = layout.split(obs)
+    cyl = cyl.copy()
+    cyl[..., CYL.column("present")] = 0.0
+    close = np.concatenate([own, cyl.reshape(2, 3, -1), nbr.reshape(2, 3, -1)], -1)
+    both = dataclasses.replace(braking, neighbour_braking=True)
+    res_nb = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, both, 0.3, 0.05, accel, applied, rate)
+    res_cyl = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, braking, 0.3, 0.05, accel, applied, rate)
+    assert np.abs(res_nb.u - res_cyl.u).max() > 1e-3
+    with jax.enable_x64(True):
+        u_jax = jax.jit(lambda o, c, g, a, now: filter_from_obs(layout, o, c, g, U_MAX, 0.06, both, 0.3, 0.05, a,
+                                                                now, rate).u)(
+            jnp.asarray(close), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel), jnp.asarray(applied))
+    np.testing.assert_allclose(np.asarray(u_jax), res_nb.u, atol=1e-9)
 
 
 def test_gate_rows_cap_a_centred_drone_hand_derived():
@@ -613,6 +628,118 @@ def test_a_braking_drone_stops_short_of_a_cylinder_in_the_command_limits_double_
     lowest, now = fly(safety)
     assert lowest > 0.045 and abs(now[0]) < 0.01
     lowest, _ = fly(dataclasses.replace(safety, braking=False))
+    assert lowest < 0.0
+
+
+def test_neighbour_braking_row_hand_derived():
+    """Two drones' look-ahead points on the x axis, this one at the origin and the neighbour 0.5 m beyond the pair's
+    distance (h = 0.5) flying at it at s m/s while this one hovers, command limit 3 m/s² each, dt 0.04 s, share 1/2:
+    the pair brakes at 6 m/s², B = √(2·6·0.5) − s = √6 − s, and the row is n · u ≥ −dt/2 (√(6/(2·0.5)) (−s) + γ B)
+    with n = −x. At s = √6 (B = 0) it asks this drone for exactly 3 m/s² (0.12 m/s this step) away from the
+    neighbour; at share 1 (a neighbour that does not brake) it asks for 3 m/s² at B = √(2·3·0.5) − s = 0."""
+    r, margin, gamma, dt = 0.06, 0.13, 1.0, 0.04
+    d = 0.5 + 2 * r + margin
+    for share, decel_pair in ((0.5, 6.0), (1.0, 3.0)):
+        s = np.sqrt(decel_pair)  # the closing speed at which the pair's braking distance is h = 0.5
+        for speed in (s, 1.0):
+            row = barriers.neighbour_braking_rows(np.zeros(3), np.zeros(3), np.array([[d, 0.0, 0.0]]),
+                                                  np.array([[-speed, 0.0, 0.0]]), np.ones(1, bool), gamma, decel=3.0,
+                                                  dt=dt, drone_radius=r, margin=margin, share=share)
+            B = s - speed
+            np.testing.assert_allclose(row.h, [0.5])
+            np.testing.assert_allclose(row.A, [[-1.0, 0.0, 0.0]])
+            np.testing.assert_allclose(row.b, [-dt * share * (-s * speed + gamma * B)], rtol=1e-12)
+        if share == 0.5:
+            np.testing.assert_allclose(-dt * share * (-s * s), 0.12)  # B = 0: 3 m/s² of braking, away from it
+    # Passing side by side (w ⊥ n, |w| = 1): the turning term lets the two keep going.
+    past = barriers.neighbour_braking_rows(np.zeros(3), np.array([0.0, 1.0, 0.0]), np.array([[d, 0.0, 0.0]]),
+                                           np.zeros((1, 3)), np.ones(1, bool), gamma, decel=3.0, dt=dt,
+                                           drone_radius=r, margin=margin)
+    np.testing.assert_allclose(past.b, [-dt * 0.5 * (1.0 / d + gamma * np.sqrt(6.0))], rtol=1e-12)
+
+
+def test_neighbour_braking_rows_split_the_pair_condition():
+    """Two drones flying steady commands (each one's velocity is its command) see the same pair: their two rows add
+    up to the pair's braking condition n · (u_i − u_k) ≥ n · (c_i − c_k) − dt (|w_⊥|²/d + √(a_pair/2h) n · w + γ B),
+    w = c_i − c_k, a_pair = 2 decel, for any positions and commands."""
+    rng = np.random.default_rng(3)
+    r, margin, gamma, dt, decel = 0.06, 0.13, 1.3, 0.04, 3.0
+    for _ in range(20):
+        p_i, p_k = rng.uniform(-1.0, 1.0, (2, 3))
+        c_i, c_k = rng.uniform(-2.0, 2.0, (2, 3))
+        kw = dict(decel=decel, dt=dt, drone_radius=r, margin=margin)
+        ri = barriers.neighbour_braking_rows(p_i, c_i, p_k[None], c_k[None], np.ones(1, bool), gamma, **kw)
+        rk = barriers.neighbour_braking_rows(p_k, c_k, p_i[None], c_i[None], np.ones(1, bool), gamma, **kw)
+        np.testing.assert_allclose(ri.A[0], -rk.A[0], atol=1e-12)
+        d = np.linalg.norm(p_i - p_k)
+        n, w, h = (p_i - p_k) / d, c_i - c_k, d - 2 * r - margin
+        B = np.sqrt(4 * decel * max(h, 0.0)) + n @ w
+        rate = (w @ w - (n @ w) ** 2) / d + np.sqrt(2 * decel / (2 * max(h, barriers.BRAKING_MIN_GAP))) * (n @ w)
+        np.testing.assert_allclose(ri.b[0] + rk.b[0], n @ w - dt * (rate + gamma * B), rtol=1e-9, atol=1e-12)
+
+
+def test_neighbour_braking_rows_come_after_every_other_row_with_their_own_gain():
+    """obs_rows with the neighbours' braking: the layout of before (velocity rows for the neighbours too), then K
+    braking rows, built from the observation with ``braking_gain`` (the drone's gain where it is 0)."""
+    from aswarm.core.layout import NBR, OWN
+
+    layout, rng, obs, gain, kw = _obs_scene(5)
+    applied = rng.uniform(-1.5, 1.5, (2, 3, 3))
+    plain = barriers.obs_rows(layout, obs, gain, **kw)
+    m, K = plain.b.shape[-1], layout.num_neighbours
+    own, _, nbr = layout.split(obs)
+    pos = np.concatenate([np.zeros((2, 3, 2)), own[..., OWN.slice("altitude")]], -1)
+    for braking_gain, expected_gain in ((7.0, 7.0), (0.0, gain[..., None])):
+        rows = barriers.obs_rows(layout, obs, gain, **kw, braking=(applied, 3.0, 0.04), brake=(False, True),
+                                 braking_gain=braking_gain)
+        assert rows.b.shape[-1] == m + K
+        for a, b in zip(rows, plain):
+            np.testing.assert_allclose(a[..., :m] if a.ndim == 3 else a[..., :m, :], b)
+        extra = barriers.neighbour_braking_rows(pos, applied, NBR.get(nbr, "rel_pos") + pos[..., None, :],
+                                                NBR.get(nbr, "rel_vel") + OWN.get(own, "vel")[..., None, :],
+                                                NBR.present(nbr), expected_gain, decel=3.0, dt=0.04,
+                                                drone_radius=kw["drone_radius"], margin=kw["margin"])
+        np.testing.assert_allclose(rows.b[..., m:], extra.b, rtol=1e-12)
+        np.testing.assert_array_equal(rows.mask[..., m:], extra.mask)
+    assert barriers.slack_weights(layout, 0.1, neighbour_braking=True).shape == (m + K,)
+
+
+@pytest.mark.parametrize("settings", [{}, {"reachable_box": False}, {"neighbour_braking_gain": 10.0},
+                                      {"neighbour_braking_gain": 10.0, "reachable_box": False}])
+def test_two_braking_drones_head_on_stop_short_of_each_other_in_the_command_limits_double_integrator(settings):
+    """The model the neighbours' braking rows assume: each look-ahead point moves at its command, which moves at most
+    3 m/s² (0.12 m/s per 40 ms step, per axis), and each sees the other's velocity (its command, in this model).
+    Head on at 2 m/s each, 2.5 m apart, both commanded on, gain 5/s: the velocity rows let the pair close in at up to
+    γ h, more than the two can take back near the end (γ · 4 m/s = 20 m/s² against 6), and on the reachable box they
+    collide; the braking rows start braking in time and stop both at the margin, with the box or without it (the
+    limit then applies after the filter) and with the drones' gain or a higher one of their own."""
+    r, dt, step, margin = 0.06, 0.04, 0.12, 0.13
+    layout = ObsLayout(num_cylinders=0, num_neighbours=1)
+    own, nbr0 = layout.own_slices, layout.own_dim
+    safety = SafetyFilterConfig(margin=margin, neighbour_braking=True, **settings)
+
+    def fly(cfg):
+        p = np.array([[0.0, 0.0, 1.0], [2.5 + 2 * r, 0.0, 1.0]])
+        now = np.array([[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+        lowest = np.inf
+        for _ in range(100):
+            obs = np.zeros((2, layout.size))
+            obs[:, own["altitude"]] = 1.0
+            obs[:, own["vel"]] = now  # no look-ahead in this config: q is the point itself
+            obs[:, own["wall_clearance"]] = 50.0
+            obs[:, nbr0 + NBR.slice("rel_pos").start:nbr0 + NBR.slice("rel_pos").stop] = p[::-1] - p
+            obs[:, nbr0 + NBR.slice("rel_vel").start:nbr0 + NBR.slice("rel_vel").stop] = now[::-1] - now
+            obs[:, nbr0 + NBR.column("present")] = 1.0
+            res = np_cbf.filter_from_obs(layout, obs, now.copy(), np.array([5.0, 5.0]), 2.0, r, cfg,
+                                         applied=now, command_rate=(3.0, dt))
+            now = np.clip(res.u, now - step, now + step)
+            p = p + dt * now
+            lowest = min(lowest, np.linalg.norm(p[1] - p[0]) - 2 * r)
+        return lowest, now
+
+    lowest, now = fly(safety)
+    assert lowest > margin - 0.005 and np.abs(now).max() < 0.01
+    lowest, _ = fly(dataclasses.replace(safety, neighbour_braking=False, braking=True))  # velocity rows
     assert lowest < 0.0
 
 

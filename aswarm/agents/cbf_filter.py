@@ -284,21 +284,24 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     m/s²): the cylinders' acceleration bounds, used where ``safety.hazard_accel`` (see ``obs_rows``).
 
     ``applied`` [..., n, 3] the commands the drones fly now and ``command_rate`` = (command acceleration limit m/s²,
-    control period s), where ``safety.braking``: the QP chooses among the commands the limit lets the drone reach
-    this step (``cmd`` first moved into that box, as the drone would take it), and the cylinders' rows are the
-    braking barriers of ``obs_rows``.
+    control period s), where ``safety.braking`` or ``safety.neighbour_braking``: the QP chooses among the commands
+    the limit lets the drone reach this step (``cmd`` first moved into that box, as the drone would take it), and the
+    cylinders' rows (``braking``) or the neighbours' (``neighbour_braking``) are the braking barriers of ``obs_rows``.
     """
     def one(o, g, u, a, now):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
         braking, box = None, None
         if now is not None:
-            box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
-            u = jnp.clip(u, *box)
+            if safety.reachable_box:
+                box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
+                u = jnp.clip(u, *box)
             braking = (now, command_rate[0], command_rate[1])
         rows = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
                                  gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                                  neighbour_share=safety.neighbour_share,
                                  lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a, braking=braking,
-                                 moving_gain_max=safety.moving_gain_max)
+                                 moving_gain_max=safety.moving_gain_max,
+                                 brake=(safety.braking, safety.neighbour_braking),
+                                 braking_gain=safety.neighbour_braking_gain)
 
         def solve(nominal):
             return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
@@ -317,7 +320,8 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
                            correction_norm=jnp.where(stuck, corr, res.correction_norm))
 
     # (static choices: a filter without them traces as it did before they existed)
-    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
+    nbr_braking = safety.neighbour_braking and safety.brakes(command_rate)
+    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack, nbr_braking)
     if cyl_accel is not None and safety.hazard_accel:
         accel = jnp.broadcast_to(jnp.asarray(cyl_accel)[..., None, :], obs.shape[:-1] + (layout.num_cylinders,))
     else:

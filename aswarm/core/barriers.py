@@ -21,7 +21,8 @@ previous gate 5]``.
 
 A drone whose command has an acceleration limit cannot take back a closing speed at once: for the
 cylinders, :func:`cylinder_braking_rows` replaces the velocity condition by one on a braking-distance
-barrier of relative degree 2 (``SafetyFilterConfig.braking``).
+barrier of relative degree 2 (``SafetyFilterConfig.braking``), and :func:`neighbour_braking_rows` does the same for
+the other drones (``SafetyFilterConfig.neighbour_braking``).
 """
 
 from __future__ import annotations
@@ -183,6 +184,44 @@ def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: 
     return Rows(n, b, present, h)
 
 
+def neighbour_braking_rows(pos, cmd, nbr_pos, nbr_vel, present, gamma, *, decel: float, dt: float,
+                           drone_radius: float, margin: float = 0.0, share=0.5) -> Rows:
+    """Rows for the other drones with relative degree 2: :func:`cylinder_braking_rows`' barrier for a pair of drones
+    that both brake, split as :func:`neighbour_rows` splits the velocity condition.
+
+    pos [..., 3] this drone's look-ahead point, cmd [..., 3] the command it flies now; nbr_pos, nbr_vel [..., K, 3]
+    the neighbours' look-ahead points and velocities; present [..., K]; gamma [..., K] or broadcastable; share []
+    (this drone's part of the pair's braking, 1/2 when both follow the rule). With n the unit normal from the
+    neighbour, h = ||q − q_k|| − (2 r_d + margin) and w = cmd − v_k (the neighbour's command is not observed: its
+    velocity stands in), the pair closing at −n · w can stop within h when the two brake at ``decel`` each, which
+    the split asks of a drone as decel / share of relative braking:
+
+        B = √(2 (decel / share) h) + n · w ≥ 0,
+
+    and Ḃ ≥ −γ B, with each drone taking ``share`` of the change of n · w over one control step, is the row
+
+        n · u ≥ n · cmd − dt share (|w_⊥|²/d + √(decel / (2 share h)) n · w + γ B).
+
+    At B = 0 it asks for exactly ``decel`` of braking, which the command limit allows. Two drones that both keep it
+    and see each other's commands as they are (rather than their velocities) keep the pair's barrier; the velocity
+    is exact for a drone flying a steady command and lags one that changes it. h is floored at BRAKING_MIN_GAP in
+    √(·/h), as for the cylinders.
+    """
+    xp = geometry.namespace(pos, nbr_pos)
+    dist, n = unit(pos[..., None, :] - nbr_pos)
+    h = dist - (2.0 * drone_radius + margin)
+    share = xp.asarray(share, dtype=pos.dtype)
+    pair_decel = decel / share
+    w = cmd[..., None, :] - nbr_vel
+    n_w = xp.sum(n * w, axis=-1)
+    perp_sq = xp.maximum(xp.sum(w * w, axis=-1) - n_w * n_w, 0.0)
+    B = xp.sqrt(2.0 * pair_decel * xp.maximum(h, 0.0)) + n_w
+    rate = (perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
+            + xp.sqrt(pair_decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * n_w + gamma * B)
+    b = xp.sum(n * cmd[..., None, :], axis=-1) - dt * share * rate
+    return Rows(n, b, present, h)
+
+
 def floor_row(pos, gamma, *, z_min: float) -> Rows:
     """One row for the floor: h = z − z_min (z_min: lowest allowed altitude of the drone centre)."""
     xp = geometry.namespace(pos)
@@ -233,10 +272,12 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
                    drone_radius: float, margin: float, floor_z: float, neighbour_share,
                    cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
-                   moving_gain_max: float = 0.0) -> list[Rows]:
+                   nbr_braking: tuple | None = None, moving_gain_max: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
     ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
-    ones) take at most that gain."""
+    ones) take at most that gain. ``cyl_braking`` = (cmd, decel, dt, lag) makes the cylinders' rows braking barriers
+    (None: velocity rows); ``nbr_braking`` = (cmd, decel, dt, gain) adds the neighbours' braking rows as a fourth
+    part, beside their velocity rows, with that class-K gain (1/s; 0: the neighbours' rows' own)."""
     xp = geometry.namespace(pos)
     M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
     gamma = xp.asarray(gamma, dtype=pos.dtype)
@@ -261,18 +302,23 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         accel = xp.zeros_like(cyl_radius) if cyl_motion is None else cyl_motion[0]
         cyl = cylinder_braking_rows(pos, cmd, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, accel=accel,
                                     lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=margin)
-    return [
-        cyl,
-        neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
-                       share=neighbour_share),
-        floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin),
-    ]
+    parts = [cyl,
+             neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
+                            share=neighbour_share),
+             floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin)]
+    if nbr_braking is not None:
+        cmd, decel, dt, g_brake = nbr_braking
+        g_brake = g_nbr if g_brake <= 0 else xp.asarray(g_brake, dtype=pos.dtype)
+        parts.append(neighbour_braking_rows(pos, cmd, nbr_pos, nbr_vel, nbr_present, g_brake, decel=decel, dt=dt,
+                                            drone_radius=drone_radius, margin=margin, share=neighbour_share))
+    return parts
 
 
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
-             moving_gain_max: float = 0.0) -> Rows:
+             moving_gain_max: float = 0.0, brake: tuple[bool, bool] = (True, False),
+             braking_gain: float = 0.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -302,6 +348,13 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
     2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
+    ``brake`` = (cylinders, neighbours): which of the two groups take braking rows when ``braking`` is given. The
+    cylinders' replace their velocity rows; the neighbours' (:func:`neighbour_braking_rows`) come on top of theirs,
+    as K more rows after the previous gate's: the braking barrier bounds the closing speed from afar, where the
+    velocity rows do not see it coming, and the velocity rows hold near, where the braking barrier's √h lets a pair
+    close at a speed only exact braking on both sides would take back (alone, they collided in 98 % of the race-16
+    episodes, README). ``braking_gain`` (1/s, 0: the drone's gain) is the class-K gain of the neighbours' braking
+    rows: B is a speed margin that braking alone keeps, so its gain can be far above the velocity rows'.
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -344,8 +397,10 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
                             neighbour_share=neighbour_share, cyl_motion=motion,
-                            cyl_braking=None if braking is None else (*braking, lookahead[0]),
+                            cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
+                            nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
                             moving_gain_max=moving_gain_max)
+    points, after = points[:3], points[3:]  # after: the neighbours' braking rows, if any, go last
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
     walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)
@@ -353,17 +408,18 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
                         drone_radius=drone_radius, margin=margin) for g in gates]
     if numpy:
         frames = [_merge_gates(f) for f in frames]
-    return concat([*points, walls, *frames])
+    return concat([*points, walls, *frames, *after])
 
 
-def slack_weights(layout, static_weight: float) -> np.ndarray:
+def slack_weights(layout, static_weight: float, neighbour_braking: bool = False) -> np.ndarray:
     """[m] each row's share of the filter's shared slack in :func:`obs_rows`' layout: 1 for the cylinders and the
     neighbours, ``static_weight`` for the floor, the walls, the ceiling and the gate frames. Those hold still, and
     hovering keeps every one of them, so when no command satisfies every row (a fast cylinder, a crowd) they give
     way ``static_weight`` times less than the moving hazards: a drone is not pushed into the floor or a frame to
     spread the violation evenly."""
     m = layout.num_cylinders + layout.num_neighbours
-    return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight))])
+    braking = np.ones(layout.num_neighbours if neighbour_braking else 0)  # obs_rows' neighbour braking rows, last
+    return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight)), braking])
 
 
 def _merge_gates(rows: Rows) -> Rows:

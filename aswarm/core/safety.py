@@ -50,6 +50,22 @@ class SafetyFilterConfig:
     # barrier on the command the drone flies now (aswarm.core.barriers.cylinder_braking_rows). Runs and bundles
     # from before read back without it.
     braking: bool = False
+    # Braking rows for the neighbours too (aswarm.core.barriers.neighbour_braking_rows), beside their velocity rows:
+    # the pair's closing speed must leave room for both drones to brake at the limit, each taking its share.
+    # Independent of braking (the cylinders'); either one puts the QP on the reachable commands. Runs and bundles
+    # from before read back without it.
+    neighbour_braking: bool = False
+    # 1/s: the class-K gain of those rows (0: the drone's gain, as every other row). Their barrier is a speed margin
+    # that the braking itself keeps, so the gain only sets how fast it may be used up; at the drone's ~1.5/s a
+    # follower 0.75 m behind, closing at 1 m/s, may speed up towards its leader at 0.5 m/s² at most. Not fitted to
+    # the drone (the lag is in the barrier's look-ahead). Runs and bundles from before read back 0.
+    neighbour_braking_gain: float = 0.0
+    # With braking or neighbour_braking: the QP chooses among the commands the drone can reach this step (the command
+    # limit's box around the command it flies now). False: the rows alone, the limit applying after the filter as
+    # it does without braking rows. The box is what makes the braking rows hold (without it two firmware drones head
+    # on at gain 10/s collided, tests/test_safety_filter_env.py), and what slows the race policy, which was trained
+    # without it (mission 30.8 -> 38 s, README). Runs and bundles from before read back true.
+    reachable_box: bool = True
     # When no command satisfies every row, the floor, walls, ceiling and gate frames take this share of the shared
     # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
     # runs and bundles from before it do.
@@ -93,8 +109,8 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("moving_gain_max", "margin", "lookahead_xy", "lookahead_z", "lookahead_scale", "escape_stuck",
-                     "escape_near"):
+        for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
+                     "lookahead_scale", "escape_stuck", "escape_near"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
@@ -105,9 +121,10 @@ class SafetyFilterConfig:
 
 
     def brakes(self, command_rate: tuple[float, float] | None) -> bool:
-        """Whether the filter takes the braking rows and the reachable box for a drone whose command changes at most
-        ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` on and a limit to brake at (none: no)."""
-        return bool(self.braking and command_rate and command_rate[0] > 0)
+        """Whether the filter takes braking rows and the reachable box for a drone whose command changes at most
+        ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` or ``neighbour_braking`` on and a limit
+        to brake at (none: no)."""
+        return bool((self.braking or self.neighbour_braking) and command_rate and command_rate[0] > 0)
 
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
         """The filter for a drone whose velocity reaches 63 % of a step in ``lag_xy`` s horizontally and ``lag_z``
@@ -125,7 +142,7 @@ class SafetyFilterConfig:
 
 
 # The config's true/false fields; every other field is a number.
-_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "escape")
+_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "neighbour_braking", "reachable_box", "escape")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -169,7 +186,9 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
-              "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, "moving_gain_max": 0.0, **safety}
+              "neighbour_braking": False, "neighbour_braking_gain": 0.0, "reachable_box": True,
+              "escape": False, "escape_stuck": 0.25,
+              "escape_near": 0.3, "moving_gain_max": 0.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

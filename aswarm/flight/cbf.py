@@ -459,14 +459,15 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     margin, neighbour share, floor height and the QP's settings from ``safety``; ``cyl_accel`` [..., M] (per swarm,
     m/s²) the cylinders' acceleration bounds, used where ``safety.hazard_accel``; ``applied`` [..., n, 3] the commands
     the drones fly now and ``command_rate`` (command acceleration limit, control period), used where
-    ``safety.braking``: the reachable box and the braking rows, as there.
+    ``safety.braking`` or ``safety.neighbour_braking``: the reachable box and the braking rows, as there.
     """
     obs = np.asarray(obs, np.float64)
     braking = box = None
     if applied is not None and safety.brakes(command_rate):
         now = np.asarray(applied, np.float64)
-        box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
-        cmd = np.minimum(np.maximum(cmd, box[0]), box[1])
+        if safety.reachable_box:
+            box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
+            cmd = np.minimum(np.maximum(cmd, box[0]), box[1])
         braking = (now, float(command_rate[0]), float(command_rate[1]))
     accel = None
     if cyl_accel is not None and safety.hazard_accel:
@@ -475,8 +476,11 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
                              margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
                              floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
                              lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking,
-                             moving_gain_max=safety.moving_gain_max)
-    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack)
+                             moving_gain_max=safety.moving_gain_max,
+                             brake=(safety.braking, safety.neighbour_braking),
+                             braking_gain=safety.neighbour_braking_gain)
+    nbr_braking = braking is not None and safety.neighbour_braking
+    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack, nbr_braking)
 
     def solve(nominal):
         return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
