@@ -121,9 +121,9 @@ class SafetyFilterConfig:
 
 
     def brakes(self, command_rate: tuple[float, float] | None) -> bool:
-        """Whether the filter takes braking rows and the reachable box for a drone whose command changes at most
-        ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` or ``neighbour_braking`` on and a limit
-        to brake at (none: no)."""
+        """Whether the filter takes braking rows (and, with ``reachable_box``, the reachable box) for a drone whose
+        command changes at most ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` or
+        ``neighbour_braking`` on and a limit to brake at (none: no)."""
         return bool((self.braking or self.neighbour_braking) and command_rate and command_rate[0] > 0)
 
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
