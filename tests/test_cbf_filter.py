@@ -681,7 +681,7 @@ def test_neighbour_braking_rows_split_the_pair_condition():
 def test_neighbour_braking_rows_come_after_every_other_row_with_their_own_gain():
     """obs_rows with the neighbours' braking: the layout of before (velocity rows for the neighbours too), then K
     braking rows, built from the observation with ``braking_gain`` (the drone's gain where it is 0)."""
-    from aswarm.core.layout import NBR, OWN
+    from aswarm.core.layout import OWN
 
     layout, rng, obs, gain, kw = _obs_scene(5)
     applied = rng.uniform(-1.5, 1.5, (2, 3, 3))
@@ -701,7 +701,9 @@ def test_neighbour_braking_rows_come_after_every_other_row_with_their_own_gain()
                                                 drone_radius=kw["drone_radius"], margin=kw["margin"])
         np.testing.assert_allclose(rows.b[..., m:], extra.b, rtol=1e-12)
         np.testing.assert_array_equal(rows.mask[..., m:], extra.mask)
-    assert barriers.slack_weights(layout, 0.1, neighbour_braking=True).shape == (m + K,)
+    weights = barriers.slack_weights(layout, 0.1, m + K)
+    np.testing.assert_array_equal(weights[m:], np.ones(K))
+    np.testing.assert_array_equal(weights[:m], barriers.slack_weights(layout, 0.1))
 
 
 @pytest.mark.parametrize("settings", [{}, {"reachable_box": False}, {"neighbour_braking_gain": 10.0},

@@ -302,6 +302,9 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
                                  moving_gain_max=safety.moving_gain_max,
                                  brake=(safety.braking, safety.neighbour_braking),
                                  braking_gain=safety.neighbour_braking_gain)
+        # (a static choice: a filter without it traces as it did before it existed)
+        weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
+                                                                              rows.b.shape[-1])
 
         def solve(nominal):
             return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
@@ -320,8 +323,6 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
                            correction_norm=jnp.where(stuck, corr, res.correction_norm))
 
     # (static choices: a filter without them traces as it did before they existed)
-    nbr_braking = safety.neighbour_braking and safety.brakes(command_rate)
-    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack, nbr_braking)
     if cyl_accel is not None and safety.hazard_accel:
         accel = jnp.broadcast_to(jnp.asarray(cyl_accel)[..., None, :], obs.shape[:-1] + (layout.num_cylinders,))
     else:

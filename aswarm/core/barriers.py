@@ -411,15 +411,16 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     return concat([*points, walls, *frames, *after])
 
 
-def slack_weights(layout, static_weight: float, neighbour_braking: bool = False) -> np.ndarray:
+def slack_weights(layout, static_weight: float, num_rows: int | None = None) -> np.ndarray:
     """[m] each row's share of the filter's shared slack in :func:`obs_rows`' layout: 1 for the cylinders and the
     neighbours, ``static_weight`` for the floor, the walls, the ceiling and the gate frames. Those hold still, and
     hovering keeps every one of them, so when no command satisfies every row (a fast cylinder, a crowd) they give
     way ``static_weight`` times less than the moving hazards: a drone is not pushed into the floor or a frame to
-    spread the violation evenly."""
+    spread the violation evenly. ``num_rows``: the rows' count where it goes past the gates' (the neighbours'
+    braking rows, last), those rows weighing 1 as the neighbours' others."""
     m = layout.num_cylinders + layout.num_neighbours
-    braking = np.ones(layout.num_neighbours if neighbour_braking else 0)  # obs_rows' neighbour braking rows, last
-    return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight)), braking])
+    after = 0 if num_rows is None else num_rows - m - FIXED_ROWS
+    return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight)), np.ones(after)])
 
 
 def _merge_gates(rows: Rows) -> Rows:

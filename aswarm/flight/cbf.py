@@ -479,8 +479,8 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
                              moving_gain_max=safety.moving_gain_max,
                              brake=(safety.braking, safety.neighbour_braking),
                              braking_gain=safety.neighbour_braking_gain)
-    nbr_braking = braking is not None and safety.neighbour_braking
-    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack, nbr_braking)
+    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
+                                                                          rows.b.shape[-1])
 
     def solve(nominal):
         return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
