@@ -9,6 +9,16 @@ Flies each episode as ``aswarm plot`` does (the deterministic, filtered policy; 
 seed, so ``aswarm plot --episode-index i`` draws it) and prints, per episode, the drones that neither finished nor
 collided: where they stopped, their goal, the gap to it, the nearest drone still flying and how far they moved in
 the last 2 s; then a summary by start line (the crossing's lines, front first). Prints only; nothing is written.
+
+With ``--failed-of N`` it first flies N episodes in one batch, as ``aswarm eval`` does, and then replays only those
+that failed there, printing each drone's legs (the time from one waypoint to the next) and the slowest: where a
+timed-out race lost its time (issue #15's main command)
+
+    python experiments/unfinished_drones.py --checkpoint runs/race --failed-of 1000 --seed 10000
+
+A replay flies alone, and XLA fuses a lone episode's arithmetic differently from a batch's, so after a few
+hundred steps it can end otherwise (a time-out of the batch may finish alone, late): its legs say where the
+episode was slow, not that it fails every time.
 """
 
 from __future__ import annotations
@@ -35,6 +45,32 @@ def unfinished(pos: np.ndarray, goal: np.ndarray, finished: np.ndarray, collided
     return rows
 
 
+def legs(target: np.ndarray, time: np.ndarray, open_end: np.ndarray | None = None) -> list[list[tuple[int, float]]]:
+    """Per drone, ``(waypoint, seconds)`` for each waypoint it reached: the time since it reached the one before
+    (the first from the episode's start, so it holds the start stagger). target [T, n] waypoint index, time [T] s;
+    ``open_end`` [n] bool: those drones (still flying at the end) also get the leg they were on, timed to the end."""
+    out = []
+    for d in range(target.shape[1]):
+        step = np.flatnonzero(np.diff(target[:, d]) > 0) + 1
+        starts = np.concatenate([[time[0]], time[step]])
+        drone_legs = [(int(target[k - 1, d]), float(t - t0)) for k, t, t0 in zip(step, time[step], starts)]
+        if open_end is not None and open_end[d]:
+            drone_legs.append((int(target[-1, d]), float(time[-1] - starts[-1])))
+        out.append(drone_legs)
+    return out
+
+
+def failed_episodes(agent, restored, episodes: int, key) -> np.ndarray:
+    """Indices of the episodes that did not succeed when ``episodes`` of ``key`` fly as one batch (``aswarm eval``)."""
+    from aswarm.analysis import evaluate
+
+    rec, _, _ = evaluate.rollout_with_filter_stats(agent, restored["params"], restored["obs_norm"], agent.env,
+                                                   episodes, key)
+    success = np.asarray(rec["success"])
+    print(f"{episodes} episodes in one batch: {success.mean():.1%} success, {int((success < 1).sum())} failed")
+    return np.flatnonzero(success < 1)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", required=True)
@@ -42,9 +78,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=8)
     ap.add_argument("--seed", type=int, default=50000)
     ap.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--failed-of", type=int, default=0, metavar="N",
+                    help="fly N episodes as one batch and replay the failed ones (instead of the first --episodes)")
     args = ap.parse_args(argv)
     if args.episodes < 1:
         ap.error(f"invalid --episodes {args.episodes}: must be >= 1")
+    if args.failed_of < 0:
+        ap.error(f"invalid --failed-of {args.failed_of}: must be >= 1 (or 0: replay the first --episodes)")
 
     import jax
 
@@ -52,15 +92,27 @@ def main(argv: list[str] | None = None) -> int:
     from aswarm.envs.scenarios import CROSSING_LANES
 
     _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.episodes)
+    count = args.failed_of or args.episodes
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), count)
+    chosen = (failed_episodes(agent, restored, count, jax.random.PRNGKey(args.seed)) if args.failed_of
+              else np.arange(count))
     by_line: dict[int, int] = {}
-    for i in range(args.episodes):
+    slowest_at: dict[int, int] = {}
+    for i in chosen:
         ep = plots.record_episode(agent, restored["params"], restored["obs_norm"], keys[i])
         steps_back = int(STILL_WINDOW_S * ep.policy_freq)
         rows = unfinished(ep.pos, ep.layout.waypoints[:, -1], ep.finished, ep.collided, ep.flying, steps_back)
         hit = np.flatnonzero(ep.collided)
         print(f"episode {i}: {ep.time[-1]:.1f} s, {int(ep.finished.sum())} of {ep.num_agents} finished, "
               f"collided {[(int(d), ep.collision_kind[d]) for d in hit]}, {len(rows)} still flying")
+        if args.failed_of:
+            for d, drone_legs in enumerate(legs(ep.target, ep.time, ep.flying[-1])):
+                if drone_legs:
+                    worst = max(drone_legs, key=lambda leg: leg[1])
+                    slowest_at[worst[0]] = slowest_at.get(worst[0], 0) + 1
+                    print(f"  drone {d} legs (waypoint: s) " + ", ".join(f"{w}: {t:.1f}" for w, t in drone_legs)
+                          + (" (the last still open)" if ep.flying[-1, d] else "")
+                          + f"; slowest to waypoint {worst[0]}")
         if len(hit):  # an episode ends at its first collision: the others were cut short, not stuck
             continue
         for r in rows:
@@ -71,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"in the last {STILL_WINDOW_S:.0f} s")
     print("unfinished drones of the episodes without a collision, by start line (0 = front): "
           + (", ".join(f"line {k}: {v}" for k, v in sorted(by_line.items())) or "none"))
+    if args.failed_of:
+        print("each drone's slowest leg, by the waypoint it led to: "
+              + (", ".join(f"{k}: {v}" for k, v in sorted(slowest_at.items())) or "none"))
     return 0
 
 

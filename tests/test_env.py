@@ -137,6 +137,13 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
     # on the axis in front: the distance; past the plane: + w * depth; off the axis: + k * offset
     np.testing.assert_allclose(env._to_go(pos, s.layout, jnp.zeros(3, jnp.int32)),
                                [0.5, 0.5 + w * 0.5, 0.2 + w * 0.2 + k * 0.5], rtol=1e-5)
+    # wrong_side_clearance 0.5: past the plane an offset under 0.5 counts as 0.5; in front it is the offset
+    clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
+                        wrong_side_clearance=0.5)
+    in_front = g + 0.3 * side - 0.2 * normal
+    np.testing.assert_allclose(clamped._to_go(jnp.stack([g + 0.2 * side + 0.2 * normal, in_front, g + 0.7 * side + 0.2 * normal]),
+                                              s.layout, jnp.zeros(3, jnp.int32)),
+                               [0.2 + w * 0.2 + k * 0.5, 0.2 + k * 0.3, 0.2 + w * 0.2 + k * 0.7], rtol=1e-5)
     goals = envs.make("obstacles")
     sg = jax.jit(goals.reset)(jax.random.PRNGKey(0))
     p = sg.layout.waypoints[:, 0] + jnp.array([0.0, 0.0, 0.7])

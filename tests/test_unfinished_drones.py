@@ -33,3 +33,13 @@ def test_alone_drone_has_no_nearest():
     flying = np.array([[True, True], [False, True]])
     rows = _module().unfinished(pos, np.ones((2, 3)), np.array([True, False]), np.zeros(2, bool), flying, 5)
     assert rows[0]["nearest"] == float("inf") and rows[0]["moved"] == 0.0
+
+
+def test_legs_by_hand():
+    # 2 drones at 1 s instants: drone 0 reaches waypoint 0 at 2 s and waypoint 1 at 5 s; drone 1 only waypoint 0,
+    # at 4 s; the index stays at the last waypoint + 1 once reached.
+    time = np.arange(7.0)
+    target = np.array([[0, 0], [0, 0], [1, 0], [1, 0], [1, 1], [2, 1], [2, 1]])
+    assert _module().legs(target, time) == [[(0, 2.0), (1, 3.0)], [(0, 4.0)]]
+    # drone 1 still flying at 6 s: its open leg to waypoint 1, 2 s so far
+    assert _module().legs(target, time, np.array([False, True]))[1] == [(0, 4.0), (1, 2.0)]

@@ -114,6 +114,10 @@ class EnvConfig:
     # weighing the offset from the axis makes the drone line up before the plane, as racing lines do.
     lateral_weight: float = 2.0
     wrong_side_weight: float = 2.0
+    # m, 0 = off. Past the plane, an offset from the axis under this counts as this: a drone that flew beside
+    # the frame is drawn straight back to the approach side, not diagonally towards the axis through the frame
+    # (where the filter holds it: the race's time-outs, README "Where the main command's failures come from").
+    wrong_side_clearance: float = 0.0
     paper_epsilon: float = 0.001  # r = 1 / (d + eps)
     safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
     cf: CrazyflieParams = CrazyflieParams()
@@ -180,7 +184,7 @@ def legacy_drone_stored() -> dict:
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
                "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash,
                "max_moving": -1, "filter_neighbours": 0, "cf.motor_tau_down": 0.0,
-               "moving_speed_scale": (1.0, 1.0)}
+               "moving_speed_scale": (1.0, 1.0), "wrong_side_clearance": 0.0}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -285,7 +289,8 @@ def validate(c: EnvConfig) -> None:
                  "safety_margin", "track_height"):
         if getattr(c, name) <= 0:
             _fail(name, getattr(c, name), "must be > 0")
-    for name in ("lateral_weight", "wrong_side_weight", "command_rate_penalty", "command_accel_limit"):
+    for name in ("lateral_weight", "wrong_side_weight", "wrong_side_clearance", "command_rate_penalty",
+                 "command_accel_limit"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.start_interval < 0:

@@ -114,6 +114,7 @@ class EnvParams:
     command_step_limit: jax.Array  # m/s, derived: command_accel_limit / policy_freq
     lateral_weight: jax.Array
     wrong_side_weight: jax.Array
+    wrong_side_clearance: jax.Array
     paper_epsilon: jax.Array
     moving_amplitude: jax.Array  # m, read by reset (the layout of a new episode)
     moving_omega: jax.Array  # rad/s, derived: 2 pi / moving_period
@@ -132,7 +133,8 @@ class EnvParams:
             time_penalty_per_step=_f32(cfg.time_penalty * cfg.dt),
             command_rate_penalty=_f32(cfg.command_rate_penalty),
             command_step_limit=_f32(cfg.command_accel_limit / cfg.policy_freq), lateral_weight=_f32(cfg.lateral_weight),
-            wrong_side_weight=_f32(cfg.wrong_side_weight), paper_epsilon=_f32(cfg.paper_epsilon),
+            wrong_side_weight=_f32(cfg.wrong_side_weight),
+            wrong_side_clearance=_f32(cfg.wrong_side_clearance), paper_epsilon=_f32(cfg.paper_epsilon),
             moving_amplitude=_f32(cfg.moving_amplitude), moving_omega=_f32(2 * np.pi / cfg.moving_period),
             pid=jax.tree.map(_f32, cfg.pid), mellinger=jax.tree.map(_f32, cfg.mellinger),
             reference_leash=_f32(cfg.reference_leash), latency_ticks=_f32(0.0), mocap_noise=_f32(0.0),

@@ -404,7 +404,8 @@ class SwarmEnv:
         """[n] distance left to each drone's waypoint ``target`` (m).
 
         Goals: the distance. Gates: ``|along| + lateral_weight * off_axis + wrong_side_weight * past``, in
-        the gate's frame (along its direction of passage, off its axis, and the depth past its plane).
+        the gate's frame (along its direction of passage, off its axis, and the depth past its plane); past the
+        plane ``off_axis`` is at least ``wrong_side_clearance``.
         """
         rel = pos - self._target_pos(layout, target)
         if self.kind != "track":
@@ -415,6 +416,7 @@ class SwarmEnv:
         side = -rel[:, 0] * jnp.sin(yaw) + rel[:, 1] * jnp.cos(yaw)
         off_axis = jnp.sqrt(side**2 + rel[:, 2] ** 2 + 1e-12)
         params = self.params(params)
+        off_axis = jnp.where(along > 0.0, jnp.maximum(off_axis, params.wrong_side_clearance), off_axis)
         return jnp.abs(along) + params.lateral_weight * off_axis + params.wrong_side_weight * jnp.maximum(along, 0.0)
 
     def _check(self, prev, pos, t, layout: Layout, normals, tr: Tracker):
