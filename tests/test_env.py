@@ -140,9 +140,10 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
     # wrong_side_clearance 0.5: past the plane an offset under 0.5 counts as 0.5; in front it is the offset
     clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
                         wrong_side_clearance=0.5)
-    in_front = g + 0.3 * side - 0.2 * normal
-    np.testing.assert_allclose(clamped._to_go(jnp.stack([g + 0.2 * side + 0.2 * normal, in_front, g + 0.7 * side + 0.2 * normal]),
-                                              s.layout, jnp.zeros(3, jnp.int32)),
+    near_past, in_front = g + 0.2 * (side + normal), g + 0.3 * side - 0.2 * normal
+    far_past = g + 0.7 * side + 0.2 * normal
+    np.testing.assert_allclose(clamped._to_go(jnp.stack([near_past, in_front, far_past]), s.layout,
+                                              jnp.zeros(3, jnp.int32)),
                                [0.2 + w * 0.2 + k * 0.5, 0.2 + k * 0.3, 0.2 + w * 0.2 + k * 0.7], rtol=1e-5)
     goals = envs.make("obstacles")
     sg = jax.jit(goals.reset)(jax.random.PRNGKey(0))
