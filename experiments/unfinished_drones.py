@@ -93,9 +93,9 @@ def main(argv: list[str] | None = None) -> int:
 
     _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
     count = args.failed_of or args.episodes
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), count)
-    chosen = (failed_episodes(agent, restored, count, jax.random.PRNGKey(args.seed)) if args.failed_of
-              else np.arange(count))
+    key = jax.random.PRNGKey(args.seed)
+    keys = jax.random.split(key, count)
+    chosen = failed_episodes(agent, restored, count, key) if args.failed_of else np.arange(count)
     by_line: dict[int, int] = {}
     slowest_at: dict[int, int] = {}
     for i in chosen:
