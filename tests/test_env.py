@@ -126,7 +126,8 @@ def test_race_gate_passage_advances_target_and_pays_bonus():
 
 
 def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
-    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
+    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
+                    wrong_side_clearance=0.0)
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -137,9 +138,10 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
     # on the axis in front: the distance; past the plane: + w * depth; off the axis: + k * offset
     np.testing.assert_allclose(env._to_go(pos, s.layout, jnp.zeros(3, jnp.int32)),
                                [0.5, 0.5 + w * 0.5, 0.2 + w * 0.2 + k * 0.5], rtol=1e-5)
-    # wrong_side_clearance 0.5: past the plane an offset under 0.5 counts as 0.5; in front it is the offset
-    clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
-                        wrong_side_clearance=0.5)
+    # the default wrong_side_clearance, 0.5: past the plane an offset under 0.5 counts as 0.5; in front it is
+    # the offset
+    clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
+    assert clamped.config.wrong_side_clearance == 0.5
     near_past, in_front = g + 0.2 * (side + normal), g + 0.3 * side - 0.2 * normal
     far_past = g + 0.7 * side + 0.2 * normal
     np.testing.assert_allclose(clamped._to_go(jnp.stack([near_past, in_front, far_past]), s.layout,

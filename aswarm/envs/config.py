@@ -116,8 +116,9 @@ class EnvConfig:
     wrong_side_weight: float = 2.0
     # m, 0 = off. Past the plane, an offset from the axis under this counts as this: a drone that flew beside
     # the frame is drawn straight back to the approach side, not diagonally towards the axis through the frame
-    # (where the filter holds it: the race's time-outs, README "Where the main command's failures come from").
-    wrong_side_clearance: float = 0.0
+    # (where the filter holds it). 0.5 took the main command's three seeds from 98.6 / 99.2 / 99.4 % to
+    # 99.9 / 99.6 / 99.0 % (README "Where the main command's failures come from").
+    wrong_side_clearance: float = 0.5
     paper_epsilon: float = 0.001  # r = 1 / (d + eps)
     safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
     cf: CrazyflieParams = CrazyflieParams()
