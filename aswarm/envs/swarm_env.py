@@ -297,10 +297,7 @@ class SwarmEnv:
             d = jnp.linalg.norm(drones.pos - self._target_pos(layout, tr.target), axis=-1)
             reward = 1.0 / (d + p.paper_epsilon)
         else:
-            # A drone that went through its gate this step is past the plane legitimately: no clearance there,
-            # or the clamp's jump in distance would take back the gate's bonus.
-            progress = (self._to_go(p0, layout, tr0.target, p)
-                        - self._to_go(drones.pos, layout, tr0.target, p, through=passed > 0))
+            progress = self._to_go(p0, layout, tr0.target, p) - self._to_go(drones.pos, layout, tr0.target, p)
             reward = (p.progress_weight * progress + p.gate_bonus * passed
                       + p.finish_bonus * newly_finished - p.time_penalty_per_step)
         if cfg.command_rate_penalty:  # (a static choice: without it the program is the one it always was)
@@ -403,12 +400,12 @@ class SwarmEnv:
         return jnp.take_along_axis(layout.waypoints, k[:, None, None], axis=1)[:, 0]
 
     def _to_go(self, pos: jax.Array, layout: Layout, target: jax.Array,
-                params: EnvParams | None = None, through: jax.Array | bool = False) -> jax.Array:
+                params: EnvParams | None = None) -> jax.Array:
         """[n] distance left to each drone's waypoint ``target`` (m).
 
         Goals: the distance. Gates: ``|along| + lateral_weight * off_axis + wrong_side_weight * past``, in
         the gate's frame (along its direction of passage, off its axis, and the depth past its plane); past the
-        plane ``off_axis`` is at least ``wrong_side_clearance``, except for drones ``through`` the opening.
+        plane ``off_axis`` is at least ``wrong_side_clearance``.
         """
         rel = pos - self._target_pos(layout, target)
         if self.kind != "track":
@@ -419,8 +416,7 @@ class SwarmEnv:
         side = -rel[:, 0] * jnp.sin(yaw) + rel[:, 1] * jnp.cos(yaw)
         off_axis = jnp.sqrt(side**2 + rel[:, 2] ** 2 + 1e-12)
         params = self.params(params)
-        beside = (along > 0.0) & ~jnp.asarray(through)
-        off_axis = jnp.where(beside, jnp.maximum(off_axis, params.wrong_side_clearance), off_axis)
+        off_axis = jnp.where(along > 0.0, jnp.maximum(off_axis, params.wrong_side_clearance), off_axis)
         return jnp.abs(along) + params.lateral_weight * off_axis + params.wrong_side_weight * jnp.maximum(along, 0.0)
 
     def _check(self, prev, pos, t, layout: Layout, normals, tr: Tracker):
