@@ -97,10 +97,12 @@ def test_vmapped_autoreset_rollout_in_scan():
     assert not np.allclose(final_obs[9], obs[9])  # final obs of the old episode kept apart
 
 
-@pytest.mark.parametrize("clearance", [0.0, 0.5])
-def test_race_gate_passage_advances_target_and_pays_bonus(clearance):
+@pytest.mark.parametrize("clearance,bonus", [(0.0, 10.0), (0.5, 10.0), (0.0, None)])
+def test_race_gate_passage_advances_target_and_pays_bonus(clearance, bonus):
+    # bonus None: the default, no gate bonus since session 34 (the passing step pays its progress only)
+    extra = {} if bonus is None else {"gate_bonus": bonus}
     env = envs.make("race", num_agents=1, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
-                    wrong_side_clearance=clearance)
+                    wrong_side_clearance=clearance, **extra)
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -136,7 +138,10 @@ def test_race_gate_passage_advances_target_and_pays_bonus(clearance):
     k = targets.index(1)
     by_hand = c.gate_bonus + c.progress_weight * (to_go(positions[k]) - to_go(positions[k + 1])) - c.time_penalty * c.dt
     assert rewards[k] == pytest.approx(by_hand, abs=1e-3)
-    assert (rewards[k] > c.gate_bonus * 0.9) if clearance == 0.0 else (rewards[k] < c.gate_bonus * 0.1)
+    if bonus is None:  # the default: no bonus, so no spike on the passing step (a step moves ~4 cm, 0.4 each)
+        assert c.gate_bonus == 0.0 and abs(rewards[k]) < 1.0
+    else:
+        assert (rewards[k] > bonus * 0.9) if clearance == 0.0 else (rewards[k] < bonus * 0.1)
     np.testing.assert_allclose(s.obs[0, :3], s.data.qpos[:3] - s.layout.gate_pos[1], atol=1e-5)
     # Past it: gate 0 is now the gate passed last, with its direction of passage.
     np.testing.assert_allclose(s.obs[0, f["prev_gate_rel"]], s.data.qpos[:3] - g, atol=1e-5)
@@ -144,8 +149,8 @@ def test_race_gate_passage_advances_target_and_pays_bonus(clearance):
 
 
 def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side():
-    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
-                    wrong_side_clearance=0.0)
+    env = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
+    assert env.config.wrong_side_clearance == 0.0  # the default since session 34
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     g, yaw = s.layout.gate_pos[0], s.layout.gate_yaw[0]
     normal = jnp.array([jnp.cos(yaw), jnp.sin(yaw), 0.0])
@@ -156,10 +161,10 @@ def test_track_progress_weighs_the_offset_from_the_gate_axis_and_its_wrong_side(
     # on the axis in front: the distance; past the plane: + w * depth; off the axis: + k * offset
     np.testing.assert_allclose(env._to_go(pos, s.layout, jnp.zeros(3, jnp.int32)),
                                [0.5, 0.5 + w * 0.5, 0.2 + w * 0.2 + k * 0.5], rtol=1e-5)
-    # the default wrong_side_clearance, 0.5: past the plane an offset under 0.5 counts as 0.5; in front it is
-    # the offset
-    clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF)
-    assert clamped.config.wrong_side_clearance == 0.5
+    # wrong_side_clearance 0.5 (the default in session 33): past the plane an offset under 0.5 counts as 0.5; in
+    # front it is the offset
+    clamped = envs.make("race", num_agents=3, num_obstacles=0, layout_jitter=0.0, randomize=OFF,
+                        wrong_side_clearance=0.5)
     near_past, in_front = g + 0.2 * (side + normal), g + 0.3 * side - 0.2 * normal
     far_past = g + 0.7 * side + 0.2 * normal
     np.testing.assert_allclose(clamped._to_go(jnp.stack([near_past, in_front, far_past]), s.layout,
