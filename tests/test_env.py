@@ -126,7 +126,8 @@ def test_race_gate_passage_advances_target_and_pays_bonus(clearance, bonus):
     assert int(s.tracker.target[0]) == 1 and not bool(s.tracker.collided[0])
     # The passing step's reward by hand, in gate 0's frame: the bonus plus the fall in |along| + 2 off + 2 past,
     # where past the plane the offset counts at least `clearance`, on the step through the opening too: on the
-    # axis the jump to 0.5 m takes 1 m of progress back, about the whole bonus (as the default trained, README).
+    # axis the jump to 0.5 m takes 1 m of progress back, about the whole bonus (as session 33's default trained,
+    # README).
     c = env.config
     side, g_np = np.array([-np.sin(yaw), np.cos(yaw), 0.0]), np.asarray(g)
 
