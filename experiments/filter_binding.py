@@ -1,0 +1,129 @@
+"""Which of the safety filter's rows take a policy's speed: cylinders, neighbours, floor, walls or gate frames.
+
+    python experiments/filter_binding.py --checkpoint pretrained --episodes 100 --seed 50000
+    python experiments/filter_binding.py --checkpoint pretrained --filter '{"margin": 0.1}' --out /tmp/binding
+
+Flies ``--episodes`` episodes as ``aswarm eval`` does (the deterministic policy, its filter, episode i from the i-th
+key of the seed) and, on every step of every flying drone, takes the rows of the filter
+(``core.barriers.obs_rows``, at the look-ahead point) that are tight at the command it let through (``A u = b``
+within 1 mm/s). A step on which the filter changed the command counts for each group with a tight row, and the
+speed it took away along the policy's command (``|c| − u · c / |c|``, at least 0) is split evenly among those
+groups. Prints, per group, the share of flying drone-steps on which it was tight and the speed it took per flying
+drone-step (the groups' speeds add up to the mean speed lost); ``--out`` also writes ``filter_binding.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+# Row groups of core.barriers.obs_rows after the point hazards (as in collision_trace.py).
+FIXED_GROUPS = (("floor", 1), ("walls", 5), ("gate", 5), ("prev_gate", 5))
+TIGHT = 1e-3  # m/s: a row is tight at u where A u − b is under this
+CHANGED = 1e-3  # m/s: the filter changed a command by more than this
+
+
+def attribute(A, b, mask, u, cmd, flying, bounds):
+    """Per drone [n]: which groups are tight at ``u`` [n, G] where the filter changed ``cmd`` (flying drones only),
+    and the speed it took along ``cmd`` [n]. A [n, m, 3], b and mask [n, m]; ``bounds`` the groups' row offsets."""
+    import jax.numpy as jnp
+
+    tight = mask & (jnp.einsum("nmk,nk->nm", A, u) - b < TIGHT)
+    changed = flying & (jnp.linalg.norm(u - cmd, axis=-1) > CHANGED)
+    groups = jnp.stack([jnp.any(tight[:, a:z], -1) for a, z in zip(bounds[:-1], bounds[1:])], -1)
+    speed = jnp.linalg.norm(cmd, axis=-1)
+    lost = jnp.maximum(speed - jnp.sum(u * cmd, -1) / jnp.maximum(speed, 1e-6), 0.0)
+    return changed[:, None] & groups, jnp.where(changed, lost, 0.0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained[:NAME]'")
+    p.add_argument("--scenario", default=None, help="default: the one it was trained on")
+    p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE", help="env override, repeatable")
+    p.add_argument("--filter", default="{}", metavar="JSON", help="safety-filter fields to replace")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=None, help="default: the evaluation seed")
+    p.add_argument("--out", type=Path, default=None, help="folder for filter_binding.json")
+    args = p.parse_args(argv)
+    if args.episodes <= 0:
+        p.error(f"invalid --episodes={args.episodes}: allowed: > 0")
+    try:
+        fields = json.loads(args.filter)
+    except json.JSONDecodeError as e:
+        p.error(f"invalid --filter: {e}; allowed: a JSON object of safety-filter fields")
+    if not isinstance(fields, dict):
+        p.error(f"invalid --filter={args.filter!r}: allowed: a JSON object of safety-filter fields")
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from aswarm.agents.train import Agent
+    from aswarm.analysis import evaluate
+    from aswarm.analysis.protocol import EVAL_SEED
+    from aswarm.core import barriers
+    from aswarm.files import write_atomic
+
+    seed = EVAL_SEED if args.seed is None else args.seed
+    _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
+    if fields:
+        safety = dataclasses.replace(agent.config.safety_filter, **fields)
+        agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), agent.env)
+    env, params, obs_norm = agent.env, restored["params"], restored["obs_norm"]
+    cfg, sf = env.config, agent.config.safety_filter
+    layout = env.filter_layout if env.wide_filter else env.obs_layout
+    groups = (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours)) + FIXED_GROUPS
+    bounds = [int(x) for x in np.cumsum([0] + [k for _, k in groups])]
+    zeros = jnp.zeros(len(groups))
+
+    def episode(key):
+        def body(carry, _):
+            s, acc = carry
+            cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
+            res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
+                                        env.applied_command(s))
+            gain = agent.filter_gain(params, obs_norm, s.obs)
+            rows = barriers.obs_rows(layout, s.obs if s.filter_obs is None else s.filter_obs, gain,
+                                     drone_radius=cfg.cf.collision_radius, margin=sf.margin,
+                                     gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar,
+                                     floor_z=sf.floor_z, neighbour_share=sf.neighbour_share,
+                                     lookahead=(sf.lookahead_xy, sf.lookahead_z))
+            flying = env.flying(s) & ~s.tracker.collided
+            tight, lost = attribute(rows.A, rows.b, rows.mask, res.u, cmd, flying, bounds)
+            share = tight / jnp.maximum(tight.sum(-1, keepdims=True), 1)
+            acc = {"flying": acc["flying"] + flying.sum(), "changed": acc["changed"] + jnp.any(tight, -1).sum(),
+                   "tight": acc["tight"] + tight.sum(0), "lost": acc["lost"] + (share * lost[:, None]).sum(0),
+                   "asked": acc["asked"] + jnp.where(flying, jnp.linalg.norm(cmd, axis=-1), 0.0).sum(),
+                   "let_through": acc["let_through"] + jnp.where(flying, jnp.linalg.norm(res.u, axis=-1), 0.0).sum()}
+            return (env.step(s, res.u), acc), None
+
+        acc0 = {"flying": 0.0, "changed": 0.0, "tight": zeros, "lost": zeros, "asked": 0.0, "let_through": 0.0}
+        return jax.lax.scan(body, (env.reset(key), acc0), None, length=cfg.max_steps)[0][1]
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), args.episodes)
+    acc = jax.tree.map(lambda x: np.asarray(x, np.float64).sum(0), jax.jit(jax.vmap(episode))(keys))
+    n = acc["flying"]
+    result = {"checkpoint": args.checkpoint, "scenario": cfg.scenario, "env": args.env, "filter": fields,
+              "episodes": args.episodes, "seed": seed, "flying_drone_steps": int(n),
+              "changed_share": acc["changed"] / n, "asked_mps": acc["asked"] / n,
+              "let_through_mps": acc["let_through"] / n,
+              "groups": {g: {"tight_share": t / n, "speed_taken_mps": s / n}
+                         for (g, _), t, s in zip(groups, acc["tight"], acc["lost"])}}
+    print(f"{args.checkpoint} {fields or ''}: {args.episodes} episodes of seed {seed}, {int(n)} flying drone-steps; "
+          f"the filter changed {result['changed_share']:.1%} of them with a tight row; speed asked "
+          f"{result['asked_mps']:.2f} m/s, let through {result['let_through_mps']:.2f} m/s")
+    for g, v in result["groups"].items():
+        print(f"  {g:11s} tight on {v['tight_share']:6.1%} of flying steps, took {v['speed_taken_mps']:.3f} m/s")
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_atomic(args.out / "filter_binding.json", json.dumps(result, indent=1))
+        print(f"wrote {args.out / 'filter_binding.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
