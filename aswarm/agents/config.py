@@ -87,6 +87,10 @@ class TrainConfig:
     # layout), the others start fresh (a joint critic of another swarm size), and the observation normaliser comes
     # along. "" starts from random weights. How a 16-drone policy starts from the 4-drone one (README, "Swarms").
     init_from: str = ""
+    # Updates at the start in which the actor's rate is 0 and only the critics and the CBF network learn. For a
+    # warm start whose critics start fresh (init_from at another swarm size): without it the first updates' advantages
+    # come from an untrained critic, and the 16-drone race fine-tune unlearnt the 4-drone policy (README, "race-16").
+    actor_warmup: int = 0
     # Host loop.
     checkpoint_minutes: float = 5.0
     updates_per_chunk: int = 10
@@ -109,6 +113,9 @@ class TrainConfig:
             raise ValueError(f"invalid target_tau={self.target_tau}: must be in [0, 1] (0: no target critics)")
         if self.correction_penalty < 0:
             raise ValueError(f"invalid correction_penalty={self.correction_penalty}: must be >= 0")
+        if not 0 <= self.actor_warmup < self.num_updates:
+            raise ValueError(f"invalid actor_warmup={self.actor_warmup!r}: allowed: 0 to {self.num_updates - 1} "
+                             f"(the run's updates, {self.num_updates}, less one)")
         if self.devices < 0:
             raise ValueError(f"invalid devices={self.devices}: must be >= 0 (0: as many as divide num_envs)")
         for name in ("total_steps", "num_envs", "rollout_steps", "epochs", "minibatches", "updates_per_chunk",
