@@ -113,9 +113,6 @@ class TrainConfig:
             raise ValueError(f"invalid target_tau={self.target_tau}: must be in [0, 1] (0: no target critics)")
         if self.correction_penalty < 0:
             raise ValueError(f"invalid correction_penalty={self.correction_penalty}: must be >= 0")
-        if not 0 <= self.actor_warmup < self.num_updates:
-            raise ValueError(f"invalid actor_warmup={self.actor_warmup!r}: allowed: 0 to {self.num_updates - 1} "
-                             f"(the run's updates, {self.num_updates}, less one)")
         if self.devices < 0:
             raise ValueError(f"invalid devices={self.devices}: must be >= 0 (0: as many as divide num_envs)")
         for name in ("total_steps", "num_envs", "rollout_steps", "epochs", "minibatches", "updates_per_chunk",
@@ -135,6 +132,9 @@ class TrainConfig:
         if (self.num_envs * self.rollout_steps) % self.minibatches:
             raise ValueError(f"invalid minibatches={self.minibatches}: must divide num_envs * rollout_steps = "
                              f"{self.num_envs * self.rollout_steps}")
+        if not 0 <= self.actor_warmup < self.num_updates:  # (num_updates needs the positive sizes checked above)
+            raise ValueError(f"invalid actor_warmup={self.actor_warmup!r}: allowed: 0 to {self.num_updates - 1} "
+                             f"(the run's updates, {self.num_updates}, less one)")
         if not isinstance(self.safety_filter, SafetyFilterConfig):
             raise ValueError(f"invalid safety_filter={self.safety_filter!r}: allowed: a SafetyFilterConfig")
         self._resolve_env()
