@@ -25,8 +25,9 @@ import json
 import sys
 from pathlib import Path
 
-# Row groups of core.barriers.obs_rows after the cylinders and neighbours, and the kinds each collision kind maps to.
-FIXED_GROUPS = (("floor", 1), ("walls", 5), ("gate", 5), ("prev_gate", 5))
+from aswarm.analysis.protocol import add_replay_arguments, filter_argument
+
+# The row groups (core.barriers.row_groups) each collision kind maps to.
 GROUP_OF_KIND = {"obstacle": ("cylinders",), "drone": ("neighbours",), "gate": ("gate", "prev_gate"),
                  "floor": ("floor",), "bounds": ("walls",)}
 GAP_KINDS = ("obstacle", "drone", "gate", "floor")
@@ -34,12 +35,7 @@ GAP_KINDS = ("obstacle", "drone", "gate", "floor")
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained[:NAME]'")
-    p.add_argument("--scenario", default=None, help="default: the one it was trained on")
-    p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE", help="env override, repeatable")
-    p.add_argument("--filter", default="{}", metavar="JSON", help="safety-filter fields to replace")
-    p.add_argument("--episodes", type=int, default=2000)
-    p.add_argument("--seed", type=int, default=None, help="default: the evaluation seed")
+    add_replay_arguments(p, episodes=2000)
     p.add_argument("--only", default=None, metavar="I,J,...",
                    help="trace these episodes of the --episodes split and skip pass 1 (e.g. another filter on the "
                         "collisions a first trace found)")
@@ -48,10 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.episodes <= 0 or args.window <= 0:
         p.error(f"invalid --episodes={args.episodes} / --window={args.window}: both must be > 0")
-    try:
-        fields = json.loads(args.filter)
-    except json.JSONDecodeError as e:
-        p.error(f"invalid --filter: {e}; allowed: a JSON object of safety-filter fields")
+    fields = filter_argument(p, args.filter)
     try:
         only = None if args.only is None else [int(i) for i in args.only.split(",")]
     except ValueError:
@@ -59,13 +52,11 @@ def main(argv: list[str] | None = None) -> int:
     if only is not None and not all(0 <= i < args.episodes for i in only):
         p.error(f"invalid --only={args.only!r}: allowed: episode numbers from 0 to {args.episodes - 1}")
 
-    import dataclasses
 
     import jax
     import jax.numpy as jnp
     import numpy as np
 
-    from aswarm.agents.train import Agent
     from aswarm.analysis import evaluate
     from aswarm.analysis.protocol import EVAL_SEED
     from aswarm.core import barriers
@@ -75,10 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     from aswarm.envs.scenarios import cylinders_at
 
     seed = EVAL_SEED if args.seed is None else args.seed
-    _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
-    if fields:
-        safety = dataclasses.replace(agent.config.safety_filter, **fields)
-        agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), agent.env)
+    _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env, fields)
     env, params, obs_norm = agent.env, restored["params"], restored["obs_norm"]
     cfg, sf = env.config, agent.config.safety_filter
     key = jax.random.PRNGKey(seed)
@@ -91,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         hit = np.asarray(only)
 
     layout = env.filter_layout if env.wide_filter else env.obs_layout
-    groups = (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours)) + FIXED_GROUPS
+    groups = barriers.row_groups(layout)
     bounds = np.cumsum([0] + [k for _, k in groups])
 
     def trace(k):

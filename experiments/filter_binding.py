@@ -15,13 +15,12 @@ drone-step (the groups' speeds add up to the mean speed lost); ``--out`` also wr
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
 
-# Row groups of core.barriers.obs_rows after the point hazards (as in collision_trace.py).
-FIXED_GROUPS = (("floor", 1), ("walls", 5), ("gate", 5), ("prev_gate", 5))
+from aswarm.analysis.protocol import add_replay_arguments, filter_argument
+
 TIGHT = 1e-3  # m/s: a row is tight at u where A u − b is under this
 CHANGED = 1e-3  # m/s: the filter changed a command by more than this
 
@@ -41,42 +40,28 @@ def attribute(A, b, mask, u, cmd, flying, bounds):
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="run folder, or 'pretrained[:NAME]'")
-    p.add_argument("--scenario", default=None, help="default: the one it was trained on")
-    p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE", help="env override, repeatable")
-    p.add_argument("--filter", default="{}", metavar="JSON", help="safety-filter fields to replace")
-    p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--seed", type=int, default=None, help="default: the evaluation seed")
+    add_replay_arguments(p, episodes=100)
     p.add_argument("--out", type=Path, default=None, help="folder for filter_binding.json")
     args = p.parse_args(argv)
     if args.episodes <= 0:
         p.error(f"invalid --episodes={args.episodes}: allowed: > 0")
-    try:
-        fields = json.loads(args.filter)
-    except json.JSONDecodeError as e:
-        p.error(f"invalid --filter: {e}; allowed: a JSON object of safety-filter fields")
-    if not isinstance(fields, dict):
-        p.error(f"invalid --filter={args.filter!r}: allowed: a JSON object of safety-filter fields")
+    fields = filter_argument(p, args.filter)
 
     import jax
     import jax.numpy as jnp
     import numpy as np
 
-    from aswarm.agents.train import Agent
     from aswarm.analysis import evaluate
     from aswarm.analysis.protocol import EVAL_SEED
     from aswarm.core import barriers
     from aswarm.files import write_atomic
 
     seed = EVAL_SEED if args.seed is None else args.seed
-    _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
-    if fields:
-        safety = dataclasses.replace(agent.config.safety_filter, **fields)
-        agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), agent.env)
+    _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env, fields)
     env, params, obs_norm = agent.env, restored["params"], restored["obs_norm"]
     cfg, sf = env.config, agent.config.safety_filter
     layout = env.filter_layout if env.wide_filter else env.obs_layout
-    groups = (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours)) + FIXED_GROUPS
+    groups = barriers.row_groups(layout)
     bounds = [int(x) for x in np.cumsum([0] + [k for _, k in groups])]
     zeros = jnp.zeros(len(groups))
 

@@ -12,7 +12,6 @@ README's look-ahead and command-limit comparisons (issue #12) were made with thi
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 
@@ -34,7 +33,6 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import numpy as np
 
-    from aswarm.agents.train import Agent
     from aswarm.analysis import evaluate
     from aswarm.analysis.protocol import EVAL_SEED
 
@@ -45,9 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     for variant in variants:
         fields = dict(variant)
         overrides = fields.pop("env", [])
-        _, agent, restored = evaluate.load_agent(args.checkpoint, env_overrides=overrides)
-        safety = dataclasses.replace(agent.config.safety_filter, **fields)
-        agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), agent.env)
+        _, agent, restored = evaluate.load_agent(args.checkpoint, env_overrides=overrides, filter_overrides=fields)
         rec, _, stats = evaluate.rollout_with_filter_stats(agent, restored["params"], restored["obs_norm"], agent.env,
                                                            args.episodes, jax.random.PRNGKey(seed))
         s = evaluate.summarize({k: np.asarray(x) for k, x in rec.items()}, float(stats.intervention_rate),

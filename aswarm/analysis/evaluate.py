@@ -212,13 +212,15 @@ def eval_env_config(config: TrainConfig, scenario: str | None = None,
 
 
 def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
-               env_overrides: list[str] | None = None) -> tuple[TrainConfig, Agent, dict]:
+               env_overrides: list[str] | None = None,
+               filter_overrides: dict | None = None) -> tuple[TrainConfig, Agent, dict]:
     """(config, agent on the evaluation env, {params, obs_norm, update}) of a checkpoint.
 
     The evaluation env is the training env as the run stored it (``config.env``) with ``env_overrides``
     ("FIELD=VALUE", nested ones dotted: "cf.mass=0.03") applied; another ``scenario`` starts from that
     scenario's preset (the only description of its course) with the run's and these overrides. A ValueError
-    says why when the networks cannot run on it.
+    says why when the networks cannot run on it. ``filter_overrides`` ({SafetyFilterConfig field: value}) replace
+    fields of the agent's filter as fitted to its drone (so a look-ahead given here is the one flown).
     """
     config, restored = load(checkpoint_dir)
     trained = envs.SwarmEnv(config.env)
@@ -235,7 +237,11 @@ def load_agent(checkpoint_dir: str | Path, scenario: str | None = None,
             f"{trained.obs_layout.num_cylinders} cylinders and {trained.obs_layout.num_neighbours} neighbours; "
             f"scenario {env.config.scenario!r} with {env.num_agents} drones gives {env.obs_layout.num_cylinders} "
             f"and {env.obs_layout.num_neighbours}: the observation layouts differ{hint}")
-    return config, Agent.build(config, env), restored
+    agent = Agent.build(config, env)
+    if filter_overrides:
+        safety = dataclasses.replace(agent.config.safety_filter, **filter_overrides)
+        agent = Agent.build(dataclasses.replace(agent.config, safety_filter=safety), env)
+    return config, agent, restored
 
 
 def summarize(rec: dict, intervention_rate: float = 0.0, infeasible_rate: float | None = None) -> dict:

@@ -411,6 +411,13 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     return concat([*points, walls, *frames, *after])
 
 
+def row_groups(layout) -> tuple[tuple[str, int], ...]:
+    """(name, number of rows) of each group of :func:`obs_rows`' rows in their order, for ``layout``'s cylinders and
+    neighbours (the neighbours' braking rows, where there are any, come after these)."""
+    return (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours), ("floor", 1), ("walls", 5),
+            ("gate", 5), ("prev_gate", 5))
+
+
 def slack_weights(layout, static_weight: float, num_rows: int | None = None) -> np.ndarray:
     """[m] each row's share of the filter's shared slack in :func:`obs_rows`' layout: 1 for the cylinders and the
     neighbours, ``static_weight`` for the floor, the walls, the ceiling and the gate frames. Those hold still, and
