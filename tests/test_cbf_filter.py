@@ -485,6 +485,8 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
     for a, b in zip(rows_np, rows_jax):
         np.testing.assert_allclose(np.asarray(b, float), a, atol=2e-5)
     # Layout: [cylinders | neighbours | floor | walls | gate | previous gate]; presence from the observation.
+    assert barriers.row_groups(layout) == (("cylinders", 3), ("neighbours", 2), ("floor", 1), ("walls", 5),
+                                           ("gate", 5), ("prev_gate", 5))
     np.testing.assert_array_equal(rows_np.mask[..., :5], obs[..., list(layout.presence_columns)] > 0.5)
     f = layout.own_slices
     np.testing.assert_allclose(rows_np.h[..., 5], obs[..., f["altitude"]][..., 0] - 0.16)

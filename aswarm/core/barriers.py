@@ -40,8 +40,9 @@ EPS = 1e-9
 WALL_NORMALS = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
 # m: the gap below which cylinder_braking_rows holds √(a/2h) at its value there (it grows without bound at contact).
 BRAKING_MIN_GAP = 0.02
-# Rows after the point hazards in obs_rows: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
-FIXED_ROWS = 1 + 5 + 10
+# Rows after the point hazards in obs_rows, by group: the floor, the 4 walls and the ceiling, and both gates' 5 bars.
+FIXED_GROUPS = (("floor", 1), ("walls", 5), ("gate", 5), ("prev_gate", 5))
+FIXED_ROWS = sum(k for _, k in FIXED_GROUPS)
 # An observed gate direction of passage is a unit vector, an absent gate's is 0: tested against this |n|².
 _GATE_PRESENT_SQ = 0.25
 # The own fields of the current gate and of the one passed last: (offset, direction of passage).
@@ -414,8 +415,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
 def row_groups(layout) -> tuple[tuple[str, int], ...]:
     """(name, number of rows) of each group of :func:`obs_rows`' rows in their order, for ``layout``'s cylinders and
     neighbours (the neighbours' braking rows, where there are any, come after these)."""
-    return (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours), ("floor", 1), ("walls", 5),
-            ("gate", 5), ("prev_gate", 5))
+    return (("cylinders", layout.num_cylinders), ("neighbours", layout.num_neighbours), *FIXED_GROUPS)
 
 
 def slack_weights(layout, static_weight: float, num_rows: int | None = None) -> np.ndarray:
