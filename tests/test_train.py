@@ -495,33 +495,6 @@ def test_init_from_copies_the_networks_that_fit_and_keeps_the_others_fresh(stack
     assert lines[-1] == "init_from pretrained:obstacles: copied actor, cbf; fresh cost_critic, critic"
 
 
-def test_actor_warmup_holds_the_actor_still_while_the_critics_learn():
-    """With ``actor_warmup`` = 2 updates of 2 epochs x 2 minibatches the actor's first 8 optimizer steps move
-    nothing, the critic's and the CBF network's move from the first; the 9th moves the actor at the annealed rate
-    (Adam's first step is the rate times the gradient's sign). Without it, the actor moves from the first step."""
-    from aswarm.agents.train import make_optimizer
-
-    config = TrainConfig(**{**SMALL, "total_steps": 32 * 8 * 4}, actor_warmup=2)  # 4 updates
-    params = {"actor": jnp.ones(3), "critic": jnp.ones(2), "cost_critic": jnp.ones(2), "cbf": jnp.ones(2)}
-    grads = jax.tree.map(lambda x: 0.1 * x, params)
-
-    def moves(cfg, steps):
-        opt = make_optimizer(cfg)
-        state, out = opt.init(params), []
-        for _ in range(steps):
-            upd, state = opt.update(grads, state, params)
-            out.append({k: float(jnp.abs(v).max()) for k, v in upd.items()})
-        return out
-
-    held = moves(config, 9)
-    assert all(m["actor"] == 0.0 and m["critic"] > 0 and m["cbf"] > 0 for m in held[:8])
-    total = config.num_updates * 2 * 2
-    assert held[8]["actor"] == pytest.approx(config.actor_lr * (1 - 8 / total), rel=1e-3)
-    assert moves(dataclasses.replace(config, actor_warmup=0), 1)[0]["actor"] == pytest.approx(config.actor_lr, rel=1e-3)
-    with pytest.raises(ValueError, match="invalid actor_warmup=4: allowed: 0 to 3"):
-        dataclasses.replace(config, actor_warmup=4)
-
-
 def test_init_from_a_policy_of_another_observation_layout_is_a_clear_error():
     # Two neighbour rows where the source observed three.
     config = TrainConfig(scenario="obstacles", init_from="pretrained:obstacles", env_overrides=(("max_neighbours", 2),))

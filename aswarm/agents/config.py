@@ -87,10 +87,6 @@ class TrainConfig:
     # layout), the others start fresh (a joint critic of another swarm size), and the observation normaliser comes
     # along. "" starts from random weights. How a 16-drone policy starts from the 4-drone one (README, "Swarms").
     init_from: str = ""
-    # Updates at the start in which the actor's rate is 0 and only the critics and the CBF network learn. For a
-    # warm start whose critics start fresh (init_from at another swarm size): without it the first updates' advantages
-    # come from an untrained critic, and the 16-drone race fine-tune unlearnt the 4-drone policy (README, "race-16").
-    actor_warmup: int = 0
     # Host loop.
     checkpoint_minutes: float = 5.0
     updates_per_chunk: int = 10
@@ -132,9 +128,6 @@ class TrainConfig:
         if (self.num_envs * self.rollout_steps) % self.minibatches:
             raise ValueError(f"invalid minibatches={self.minibatches}: must divide num_envs * rollout_steps = "
                              f"{self.num_envs * self.rollout_steps}")
-        if not 0 <= self.actor_warmup < self.num_updates:  # (num_updates needs the positive sizes checked above)
-            raise ValueError(f"invalid actor_warmup={self.actor_warmup!r}: allowed: 0 to {self.num_updates - 1} "
-                             f"(the run's updates, {self.num_updates}, less one)")
         if not isinstance(self.safety_filter, SafetyFilterConfig):
             raise ValueError(f"invalid safety_filter={self.safety_filter!r}: allowed: a SafetyFilterConfig")
         self._resolve_env()

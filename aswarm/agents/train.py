@@ -193,18 +193,14 @@ def make_optimizer(config: TrainConfig, h: dict | None = None) -> optax.Gradient
     # actor LR of 2e-3 the race policy reached 100 % and then collapsed (entropy and return falling
     # from update ~400 of 610, README).
     steps = config.num_updates * config.num_epochs * config.num_minibatches
-    held = config.actor_warmup * config.num_epochs * config.num_minibatches
 
-    def adam(lr, hold=0):
+    def adam(lr):
         rate = optax.linear_schedule(lr, 0.0, steps) if config.anneal_lr else lr
-        if hold:  # (a static choice: without a warm-up the optimizer and its state are as they always were)
-            base = rate if callable(rate) else optax.constant_schedule(rate)
-            rate = lambda count: jnp.where(count < hold, 0.0, base(count))  # noqa: E731
         return optax.chain(optax.clip_by_global_norm(h["max_grad_norm"]), optax.adam(rate))
 
     labels = {"actor": "actor", "critic": "critic", "cost_critic": "critic", "cbf": "cbf", "lagrange": "cbf"}
     return optax.multi_transform(
-        {"actor": adam(h["actor_lr"], held), "critic": adam(h["critic_lr"]), "cbf": adam(h["cbf_lr"])},
+        {"actor": adam(h["actor_lr"]), "critic": adam(h["critic_lr"]), "cbf": adam(h["cbf_lr"])},
         lambda params: {k: jax.tree.map(lambda _, lab=labels[k]: lab, v) for k, v in params.items()},
     )
 
