@@ -5,8 +5,9 @@
 
 Flies ``--episodes`` episodes as ``aswarm eval`` does (the deterministic policy, its filter, episode i from the i-th
 key of the seed) and, on every step of every flying drone, takes the rows of the filter
-(``core.barriers.obs_rows``, at the look-ahead point) that are tight at the command it let through (``A u = b``
-within 1 mm/s). A step on which the filter changed the command counts for each group with a tight row, and the
+(``core.barriers.obs_rows``, at the look-ahead point) binding at the command it let through (the QP's active set,
+``FilterResult.active``). A step on which the filter changed the command counts for each group with a binding row,
+and the
 speed it took away along the policy's command (``|c| − u · c / |c|``, at least 0) is split evenly among those
 groups. Prints, per group, the share of flying drone-steps on which it was tight and the speed it took per flying
 drone-step (the groups' speeds add up to the mean speed lost); ``--out`` also writes ``filter_binding.json``.
@@ -21,18 +22,17 @@ from pathlib import Path
 
 from aswarm.analysis.protocol import add_replay_arguments, filter_argument
 
-TIGHT = 1e-3  # m/s: a row is tight at u where A u − b is under this
 CHANGED = 1e-3  # m/s: the filter changed a command by more than this
 
 
-def attribute(A, b, mask, u, cmd, flying, bounds):
-    """Per drone [n]: which groups are tight at ``u`` [n, G] where the filter changed ``cmd`` (flying drones only),
-    and the speed it took along ``cmd`` [n]. A [n, m, 3], b and mask [n, m]; ``bounds`` the groups' row offsets."""
+def attribute(active, u, cmd, flying, bounds):
+    """Per drone [n]: which groups have a row binding at ``u`` [n, G] where the filter changed ``cmd`` (flying drones
+    only), and the speed it took along ``cmd`` [n]. ``active`` [n, m] the QP's binding rows; ``bounds`` the groups'
+    row offsets."""
     import jax.numpy as jnp
 
-    tight = mask & (jnp.einsum("nmk,nk->nm", A, u) - b < TIGHT)
     changed = flying & (jnp.linalg.norm(u - cmd, axis=-1) > CHANGED)
-    groups = jnp.stack([jnp.any(tight[:, a:z], -1) for a, z in zip(bounds[:-1], bounds[1:])], -1)
+    groups = jnp.stack([jnp.any(active[:, a:z], -1) for a, z in zip(bounds[:-1], bounds[1:])], -1)
     speed = jnp.linalg.norm(cmd, axis=-1)
     lost = jnp.maximum(speed - jnp.sum(u * cmd, -1) / jnp.maximum(speed, 1e-6), 0.0)
     return changed[:, None] & groups, jnp.where(changed, lost, 0.0)
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     seed = EVAL_SEED if args.seed is None else args.seed
     _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env, fields)
     env, params, obs_norm = agent.env, restored["params"], restored["obs_norm"]
-    cfg, sf = env.config, agent.config.safety_filter
+    cfg = env.config
     layout = env.filter_layout if env.wide_filter else env.obs_layout
     groups = barriers.row_groups(layout)
     bounds = [int(x) for x in np.cumsum([0] + [k for _, k in groups])]
@@ -71,14 +71,8 @@ def main(argv: list[str] | None = None) -> int:
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
             res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
                                         env.applied_command(s))
-            gain = agent.filter_gain(params, obs_norm, s.obs)
-            rows = barriers.obs_rows(layout, s.obs if s.filter_obs is None else s.filter_obs, gain,
-                                     drone_radius=cfg.cf.collision_radius, margin=sf.margin,
-                                     gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar,
-                                     floor_z=sf.floor_z, neighbour_share=sf.neighbour_share,
-                                     lookahead=(sf.lookahead_xy, sf.lookahead_z))
             flying = env.flying(s) & ~s.tracker.collided
-            tight, lost = attribute(rows.A, rows.b, rows.mask, res.u, cmd, flying, bounds)
+            tight, lost = attribute(res.active, res.u, cmd, flying, bounds)
             share = tight / jnp.maximum(tight.sum(-1, keepdims=True), 1)
             acc = {"flying": acc["flying"] + flying.sum(), "changed": acc["changed"] + jnp.any(tight, -1).sum(),
                    "tight": acc["tight"] + tight.sum(0), "lost": acc["lost"] + (share * lost[:, None]).sum(0),
@@ -99,10 +93,10 @@ def main(argv: list[str] | None = None) -> int:
               "groups": {g: {"tight_share": t / n, "speed_taken_mps": s / n}
                          for (g, _), t, s in zip(groups, acc["tight"], acc["lost"])}}
     print(f"{args.checkpoint} {fields or ''}: {args.episodes} episodes of seed {seed}, {int(n)} flying drone-steps; "
-          f"the filter changed {result['changed_share']:.1%} of them with a tight row; speed asked "
+          f"the filter changed {result['changed_share']:.1%} of them with a binding row; speed asked "
           f"{result['asked_mps']:.2f} m/s, let through {result['let_through_mps']:.2f} m/s")
     for g, v in result["groups"].items():
-        print(f"  {g:11s} tight on {v['tight_share']:6.1%} of flying steps, took {v['speed_taken_mps']:.3f} m/s")
+        print(f"  {g:11s} binding on {v['tight_share']:6.1%} of flying steps, took {v['speed_taken_mps']:.3f} m/s")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         write_atomic(args.out / "filter_binding.json", json.dumps(result, indent=1))
