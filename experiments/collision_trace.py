@@ -92,9 +92,8 @@ def main(argv: list[str] | None = None) -> int:
                                         env.applied_command(s))
             rows_obs = s.obs if s.filter_obs is None else s.filter_obs
             gain = agent.filter_gain(params, obs_norm, s.obs)
-            rows = barriers.obs_rows(layout, rows_obs, gain, drone_radius=r, margin=sf.margin,
-                                     gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar, floor_z=sf.floor_z,
-                                     neighbour_share=sf.neighbour_share, lookahead=(sf.lookahead_xy, sf.lookahead_z))
+            rows = barriers.filter_rows(layout, rows_obs, gain, sf, drone_radius=r,
+                                        gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar)
             h = jnp.where(rows.mask, rows.h, geo.FAR)
             h_groups = jnp.stack([jnp.min(h[:, a:b], -1, initial=geo.FAR) for a, b in zip(bounds[:-1], bounds[1:])], -1)
             n2 = env.step(s, res.u)

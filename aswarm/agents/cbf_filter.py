@@ -295,13 +295,9 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
                 box = command.reachable(now, command_rate[0] * command_rate[1], u_max)
                 u = jnp.clip(u, *box)
             braking = (now, command_rate[0], command_rate[1])
-        rows = barriers.obs_rows(layout, o, g, drone_radius=drone_radius, margin=safety.margin,
-                                 gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
-                                 neighbour_share=safety.neighbour_share,
-                                 lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=a, braking=braking,
-                                 moving_gain_max=safety.moving_gain_max,
-                                 brake=(safety.braking, safety.neighbour_braking),
-                                 braking_gain=safety.neighbour_braking_gain)
+        rows = barriers.filter_rows(layout, o, g, safety, drone_radius=drone_radius,
+                                    gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=a,
+                                    braking=braking)
         # (a static choice: a filter without it traces as it did before it existed)
         weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
                                                                               rows.b.shape[-1])

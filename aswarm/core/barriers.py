@@ -412,6 +412,18 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     return concat([*points, walls, *frames, *after])
 
 
+def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_opening: float = 0.0,
+                gate_bar: float = 0.0, cyl_accel=None, braking: tuple | None = None) -> Rows:
+    """:func:`obs_rows` with the settings of ``safety`` (an ``aswarm.core.safety.SafetyFilterConfig``): the rows
+    that both safety filters (JAX and numpy) solve and the tools that replay them read. ``cyl_accel`` and
+    ``braking`` as :func:`obs_rows` takes them, already chosen by the caller from ``safety``'s flags."""
+    return obs_rows(layout, obs, gain, drone_radius=drone_radius, margin=safety.margin,
+                    gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
+                    neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
+                    cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
+                    brake=(safety.braking, safety.neighbour_braking), braking_gain=safety.neighbour_braking_gain)
+
+
 def row_groups(layout) -> tuple[tuple[str, int], ...]:
     """(name, number of rows) of each group of :func:`obs_rows`' rows in their order, for ``layout``'s cylinders and
     neighbours (the neighbours' braking rows, where there are any, come after these)."""

@@ -472,13 +472,9 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     accel = None
     if cyl_accel is not None and safety.hazard_accel:
         accel = np.asarray(cyl_accel, np.float64)[..., None, :]
-    rows = barriers.obs_rows(layout, obs, np.asarray(gain, np.float64), drone_radius=drone_radius,
-                             margin=safety.margin, gate_half_opening=gate_half_opening, gate_bar=gate_bar,
-                             floor_z=safety.floor_z, neighbour_share=safety.neighbour_share,
-                             lookahead=(safety.lookahead_xy, safety.lookahead_z), cyl_accel=accel, braking=braking,
-                             moving_gain_max=safety.moving_gain_max,
-                             brake=(safety.braking, safety.neighbour_braking),
-                             braking_gain=safety.neighbour_braking_gain)
+    rows = barriers.filter_rows(layout, obs, np.asarray(gain, np.float64), safety, drone_radius=drone_radius,
+                                gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=accel,
+                                braking=braking)
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
                                                                           rows.b.shape[-1])
 
