@@ -62,9 +62,10 @@ class SafetyFilterConfig:
     neighbour_braking_gain: float = 0.0
     # With braking or neighbour_braking: the QP chooses among the commands the drone can reach this step (the command
     # limit's box around the command it flies now). False: the rows alone, the limit applying after the filter as
-    # it does without braking rows. The box is what makes the braking rows hold (without it two firmware drones head
-    # on at gain 10/s collided, tests/test_safety_filter_env.py), and what slows the race policy, which was trained
-    # without it (mission 30.8 -> 38 s, README). Runs and bundles from before read back true.
+    # it does without braking rows. At a braking gain of 10/s the box made two firmware drones head on stop apart on
+    # one machine and not on another; at the drone's own top gain (1.47/s) they stop apart with the box or without
+    # (tests/test_safety_filter_env.py, README "Braking rows for neighbours"). The box slows the race policy, which
+    # was trained without it (mission 30.8 -> 38 s, README). Runs and bundles from before read back true.
     reachable_box: bool = True
     # When no command satisfies every row, the floor, walls, ceiling and gate frames take this share of the shared
     # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
