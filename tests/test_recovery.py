@@ -248,9 +248,15 @@ def test_eval_in_batches_equals_one_program(run):
     rec_b, ended_b, rate_b = evaluate.rollout_episodes(*args, batch=2)
     assert set(rec) == set(rec_b)
     for name in rec:
-        np.testing.assert_array_equal(np.asarray(rec[name]), np.asarray(rec_b[name]), err_msg=name)
+        a, b = np.asarray(rec[name]), np.asarray(rec_b[name])
+        if np.issubdtype(a.dtype, np.floating):
+            # The same episodes; XLA:CPU may vectorise a batch of 2 otherwise than one of 4, so sums can differ in
+            # their last bits on some CPUs (an AMD EPYC: episode returns 1.4e-6 apart), never in what happened.
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
     np.testing.assert_array_equal(np.asarray(ended), ended_b)
-    assert float(rate) == rate_b
+    assert float(rate) == pytest.approx(rate_b, rel=1e-6)
     with pytest.raises(ValueError, match="invalid batch=0"):
         evaluate.rollout_episodes(*args, batch=0)
 
