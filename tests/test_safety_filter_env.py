@@ -337,7 +337,7 @@ def test_braking_rows_keep_two_firmware_drones_flying_head_on_apart(settings):
         if s.done:
             break
     if safety.neighbour_braking:
-        assert not bool(jnp.any(s.tracker.collided)) and closest > 0.08
+        assert not bool(jnp.any(s.tracker.collided)) and closest > 0.1
     else:
         assert int(s.tracker.collision_kind[0]) == col.DRONE
 
