@@ -52,7 +52,6 @@ def main(argv: list[str] | None = None) -> int:
     if only is not None and not all(0 <= i < args.episodes for i in only):
         p.error(f"invalid --only={args.only!r}: allowed: episode numbers from 0 to {args.episodes - 1}")
 
-
     import jax
     import jax.numpy as jnp
     import numpy as np

@@ -7,10 +7,10 @@ Flies ``--episodes`` episodes as ``aswarm eval`` does (the deterministic policy,
 key of the seed) and, on every step of every flying drone, takes the rows of the filter
 (``core.barriers.obs_rows``, at the look-ahead point) binding at the command it let through (the QP's active set,
 ``FilterResult.active``). A step on which the filter changed the command counts for each group with a binding row,
-and the
-speed it took away along the policy's command (``|c| − u · c / |c|``, at least 0) is split evenly among those
-groups. Prints, per group, the share of flying drone-steps on which it was tight and the speed it took per flying
-drone-step (the groups' speeds add up to the mean speed lost); ``--out`` also writes ``filter_binding.json``.
+and the speed it took away along the policy's command (``|c| − u · c / |c|``, at least 0) is split evenly among
+those groups. Prints, per group, the share of flying drone-steps on which it was binding and the speed it took per
+flying drone-step (the groups' speeds add up to the mean speed lost); ``--out`` also writes ``filter_binding.json``
+(the share under its old key, ``tight_share``).
 """
 
 from __future__ import annotations
