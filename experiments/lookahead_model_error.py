@@ -50,7 +50,7 @@ def fit(p, v, a, u, dt: float, keep, filter_c1: float | None = None):
 
 
 def commands(key, worlds: int, steps: int, hold: tuple[int, int], speed: float, climb: float):
-    """[worlds, steps, 3] piecewise-constant random velocity commands, each held ``hold`` control steps."""
+    """[worlds, steps, 3] piecewise-constant random velocity commands, each held hold[0] to hold[1] control steps."""
     import jax
     import jax.numpy as jnp
 
