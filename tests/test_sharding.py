@@ -40,6 +40,26 @@ for name, grid in {"one": devs[:1].reshape(1, 1), "trials": devs.reshape(2, 1)}.
     sweep.run(spec, f"{out}/{name}", progress=False, mesh=jax.sharding.Mesh(grid, sharding.AXES), log=print)
 """
 
+# Then `aswarm train` over one device (--devices 1), and over both (the default) stopped after 1 update and resumed
+# on them, on the geometric drone (tests/drones.py), in the same process (each process costs its imports). (An
+# uninterrupted run on both devices as well cost the suite a third program trace for what the resumed one shows:
+# resuming is exact on one device, test_train.py.) Hover with MAPPO, as the sweep: laying the worlds out over devices
+# is the same for every scenario and method, and obstacles with the attention-CBF cost 13 s more to compile here.
+TRAIN = """
+from aswarm import cli
+from aswarm.agents.config import TrainConfig
+from aswarm.training import runner
+geometric = GEOMETRIC
+small = dict(scenario="hover", method="mappo", num_envs=16, rollout_steps=8, minibatches=2,
+             total_steps=16 * 8 * 3, updates_per_chunk=1)
+flags = [f"--{k.replace('_', '-')}={v}" for k, v in small.items()] + [f"--env={k}={v}" for k, v in geometric]
+small["env_overrides"] = geometric
+assert cli.main(["train", *flags, "--devices", "1", "--quiet", "--out", f"{out}/train/one"]) == 0
+runner.train(TrainConfig(**small), f"{out}/train/two", progress=False, max_updates=1)
+assert len(runner.read_metrics(f"{out}/train/two")) == 1
+runner.train(None, f"{out}/train/two", resume=True, progress=False)
+""".replace("GEOMETRIC", repr(GEOMETRIC))
+
 # Two processes on loopback, one CPU device each, every trial's worlds split across them.
 HOSTS = """
 import sys
@@ -51,27 +71,6 @@ assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_de
 mesh = jax.sharding.Mesh(np.asarray(jax.devices(), dtype=object).reshape(1, 2), sharding.AXES)
 sweep.run(sweep.load(sys.argv[1]), sys.argv[2], progress=False, mesh=mesh, log=print)
 """
-
-
-# `aswarm train` over one device (--devices 1), and over both (the default) stopped after 1 update and resumed on
-# them, on the geometric drone (tests/drones.py). (An uninterrupted run on both devices as well cost the suite a
-# third program trace for what the resumed one shows: resuming is exact on one device, test_train.py.)
-TRAIN = """
-import sys
-from aswarm import cli
-from aswarm.training import runner
-from aswarm.agents.config import TrainConfig
-out = sys.argv[1]
-geometric = GEOMETRIC
-small = dict(scenario="obstacles", method="attention_cbf", num_envs=16, rollout_steps=8, minibatches=2,
-             total_steps=16 * 8 * 3, updates_per_chunk=1)
-flags = [f"--{k.replace('_', '-')}={v}" for k, v in small.items()] + [f"--env={k}={v}" for k, v in geometric]
-small["env_overrides"] = geometric
-assert cli.main(["train", *flags, "--devices", "1", "--quiet", "--out", f"{out}/one"]) == 0
-runner.train(TrainConfig(**small), f"{out}/two", progress=False, max_updates=1)
-assert len(runner.read_metrics(f"{out}/two")) == 1
-runner.train(None, f"{out}/two", resume=True, progress=False)
-""".replace("GEOMETRIC", repr(GEOMETRIC))
 
 
 # Other devices sum in another order: curves agree to 2e-3 of their scale after 3-4 updates (seen in CI:
@@ -103,7 +102,7 @@ def _assert_same(a: Path, b: Path) -> None:
 @pytest.fixture(scope="module")
 def two_devices(tmp_path_factory):
     out = tmp_path_factory.mktemp("devices")
-    proc = subprocess.run([sys.executable, "-c", DEVICES, str(CI_SWEEP), str(out)], env=_env(2), cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-c", DEVICES + TRAIN, str(CI_SWEEP), str(out)], env=_env(2), cwd=ROOT,
                           capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "2 on trials x 1 on worlds" in proc.stdout
@@ -138,17 +137,13 @@ def test_two_processes_on_loopback_train_together(two_devices, tmp_path):
     _assert_same(two_devices / "one", out)
 
 
-def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
+def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(two_devices):
     import json
 
-    from aswarm.training import runner
-
-    proc = subprocess.run([sys.executable, "-c", TRAIN, str(tmp_path)], env=_env(2), cwd=ROOT, capture_output=True,
-                          text=True, timeout=1200)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    devices = {r: json.loads((tmp_path / r / "config.json").read_text())["train"]["devices"] for r in ("two", "one")}
+    runs = two_devices / "train"
+    devices = {r: json.loads((runs / r / "config.json").read_text())["train"]["devices"] for r in ("two", "one")}
     assert devices == {"two": 2, "one": 1}
-    two, one = (runner.read_metrics(tmp_path / r) for r in ("two", "one"))
+    two, one = (runner.read_metrics(runs / r) for r in ("two", "one"))
     assert len(two) == len(one) == 3  # on 2 devices: 1 update, interrupted, 2 more after the resume
     for name in two[0]:
         assert_same_curve([r[name] for r in two], [r[name] for r in one], SCALE_RTOL, name)
@@ -156,7 +151,7 @@ def test_train_splits_its_worlds_over_the_devices_and_resumes_on_them(tmp_path):
     # entries of the critics' input layer differ more on their own (seen: 2e-4 on an EPYC, 3.4e-3 on a Xeon, 1 of
     # 52,736): inputs that barely vary get a tiny normalizer std, and Adam's step on a near-zero gradient amplifies
     # the other summation order.
-    pa, pb = (evaluate.load(tmp_path / r)[1]["params"] for r in ("two", "one"))
+    pa, pb = (evaluate.load(runs / r)[1]["params"] for r in ("two", "one"))
     for x, y in zip(jax.tree.leaves(pa), jax.tree.leaves(pb)):
         x, y = np.asarray(x), np.asarray(y)
         assert np.linalg.norm(x - y) <= 1e-3 * np.linalg.norm(x) + 1e-6
