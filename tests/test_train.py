@@ -352,11 +352,12 @@ def test_every_nested_env_field_is_settable_with_one_line_errors(capsys):
 def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
     from aswarm import cli
 
-    # SMALL's sizes: its programs, compiled by the tests above, are in the persistent cache.
+    # SMALL's sizes and chunks of 2 updates: its programs, compiled by the tests above, are in the persistent cache
+    # (a chunk of 1 update is a program of its own, some 10 s to compile).
     flags = ["--scenario", "hover", "--method", "mappo", "--num-envs", "32", "--rollout-steps", "8",
              "--minibatches", "2", "--epochs", "2", "--updates-per-chunk", "2", "--quiet"]
     run = tmp_path / "r"
-    assert cli.main(["train", *flags, *GEOMETRIC_FLAGS, "--total-steps", str(32 * 8), "--out", str(run)]) == 0
+    assert cli.main(["train", *flags, *GEOMETRIC_FLAGS, "--total-steps", str(32 * 8 * 2), "--out", str(run)]) == 0
     capsys.readouterr()
     for extra, flag in [(["--actor-lr", "0.1"], "--actor-lr"), (["--num-envs", "64"], "--num-envs"),
                         (["--method", "a2c"], "--method"), (["--env", "num_agents=2"], "--env"),
@@ -365,14 +366,14 @@ def test_resume_applies_budget_flags_and_refuses_the_others(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"aswarm train: error: invalid {flag}"), err
         assert "allowed" in err[0]
-    assert len(runner.read_metrics(run)) == 1 and checkpoint.load_config(run).total_steps == 32 * 8
+    assert len(runner.read_metrics(run)) == 2 and checkpoint.load_config(run).total_steps == 32 * 8 * 2
     # The flags it was trained with may be given again; --total-steps extends the run and is stored.
-    assert cli.main(["train", "--resume", str(run), *flags, "--total-steps", str(32 * 8 * 2),
+    assert cli.main(["train", "--resume", str(run), *flags, "--total-steps", str(32 * 8 * 4),
                      "--checkpoint-minutes", "0.5"]) == 0
     cfg = checkpoint.load_config(run)
-    assert (cfg.total_steps, cfg.checkpoint_minutes) == (32 * 8 * 2, 0.5)
-    assert [r["update"] for r in runner.read_metrics(run)] == [1, 2]
-    assert checkpoint.manager(run).latest_step() == 2
+    assert (cfg.total_steps, cfg.checkpoint_minutes) == (32 * 8 * 4, 0.5)
+    assert [r["update"] for r in runner.read_metrics(run)] == [1, 2, 3, 4]
+    assert checkpoint.manager(run).latest_step() == 4
 
 
 def test_progress_shows_the_chunks_episodes_weighted_and_keeps_them_through_a_chunk_without_any():
