@@ -12,7 +12,9 @@ random piecewise-constant velocity commands (a new one every 0.2-1 s, up to 2 m/
 its episode ends. Over the control steps it flew, the horizontal (Δp + c1 Δv + c2 Δa) / dt is fitted to the command
 it flew (after the command acceleration limit) by least squares, with c2 = 0 and free, and the fit's error
 |q' − u| reported: rms, 99th percentile, largest; beside them the filter's own look-ahead (0.9 times the drone's
-measured 63 % rise time, c2 = 0). ``a`` is MJX's acceleration of the last physics step. Prints a table;
+measured 63 % rise time, c2 = 0). ``a`` is MJX's acceleration of the last physics step; a last fit takes, in its
+place, the acceleration the drone's attitude gives (:func:`tilt_accel`: what motion capture sees of every drone, its
+neighbours' too, without differentiating positions twice). Prints a table;
 ``--out`` also writes ``lookahead_model_error.json``.
 """
 
@@ -28,22 +30,24 @@ import numpy as np
 from aswarm.files import write_atomic
 
 
-def fit(p, v, a, u, dt: float, keep, filter_c1: float | None = None):
+def fit(p, v, a, u, dt: float, keep, filter_c1: float | None = None, tilt=None):
     """Least-squares look-ahead coefficients over horizontal steps, first order (c1) and second order (c1, c2).
 
     p, v, a, u [W, T, 3]: positions, velocities, accelerations after each control step and the command flown during
     it; keep [W, T] bool: steps to use (a step t uses samples t and t + 1, both kept). Returns
     {"first": (coeffs, errors), "second": ..., "none": (None, errors)} with errors the |q' − u| [N] of each fit, and
-    "filter": ([filter_c1], errors) for a given first-order look-ahead.
+    "filter": ([filter_c1], errors) for a given first-order look-ahead, and "tilt" the second-order fit with the
+    acceleration ``tilt`` [W, T, 3] (:func:`tilt_accel`) in place of ``a``.
     """
-    dp, dv, da = (np.diff(x, axis=1)[..., :2] / dt for x in (p, v, a))
+    dp, dv, da, dt_a = (np.diff(x, axis=1)[..., :2] / dt for x in (p, v, a, a if tilt is None else tilt))
     m = keep[:, 1:] & keep[:, :-1]
     target = (u[:, 1:, :2] - dp)[m].reshape(-1)
-    dv, da = dv[m].reshape(-1, 1), da[m].reshape(-1, 1)
+    dv, da, dt_a = (x[m].reshape(-1, 1) for x in (dv, da, dt_a))
     out = {"none": (None, np.linalg.norm(target.reshape(-1, 2), axis=-1))}
     if filter_c1 is not None:
         out["filter"] = (np.array([filter_c1]), np.linalg.norm((target - filter_c1 * dv[:, 0]).reshape(-1, 2), axis=-1))
-    for name, x in (("first", dv), ("second", np.concatenate([dv, da], 1))):
+    fits = [("first", dv), ("second", np.concatenate([dv, da], 1))]
+    for name, x in fits + ([] if tilt is None else [("tilt", np.concatenate([dv, dt_a], 1))]):
         coeffs = np.linalg.lstsq(x, target, rcond=None)[0]
         out[name] = (coeffs, np.linalg.norm((target - x @ coeffs).reshape(-1, 2), axis=-1))
     return out
@@ -81,12 +85,23 @@ def fly(worlds: int, seconds: float, seed: int):
     def episode(key, cmd_seq):
         def body(s, c):
             s = env.step(s, c[None])
-            return s, (s.data.qpos[:3], s.data.qvel[:3], s.data.qacc[:3], env.applied_command(s)[0], s.done)
+            return s, (s.data.qpos[:3], s.data.qvel[:3], s.data.qacc[:3], s.data.qpos[3:7],
+                       env.applied_command(s)[0], s.done)
 
         return jax.lax.scan(body, env.reset(key), cmd_seq)[1]
 
-    p, v, a, u, done = map(np.asarray, jax.jit(jax.vmap(episode))(jax.random.split(k_reset, worlds), cmd))
-    return p, v, a, u, ~np.cumsum(done, 1).astype(bool), dt, env.config
+    p, v, a, quat, u, done = map(np.asarray, jax.jit(jax.vmap(episode))(jax.random.split(k_reset, worlds), cmd))
+    return p, v, a, tilt_accel(quat), u, ~np.cumsum(done, 1).astype(bool), dt, env.config
+
+
+def tilt_accel(quat, g: float = 9.81):
+    """[..., 3] the acceleration a drone's attitude alone gives (quat [..., 4], body->world, [w, x, y, z]): its thrust
+    along the body z axis, as large as holds its altitude, so horizontally g times the axis' tilt (vertically 0).
+    What motion capture gives of every drone's acceleration without differentiating positions twice."""
+    w, x, y, z = np.moveaxis(quat, -1, 0)
+    axis = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)  # R e_z
+    up = np.maximum(axis[..., 2:], 1e-3)
+    return np.concatenate([g * axis[..., :2] / up, np.zeros_like(up)], -1)
 
 
 def main(argv=None) -> int:
@@ -101,9 +116,9 @@ def main(argv=None) -> int:
     from aswarm.analysis.step_response import characterise
     from aswarm.core.safety import SafetyFilterConfig
 
-    p, v, a, u, keep, dt, config = fly(args.drones, args.seconds, args.seed)
+    p, v, a, tilt, u, keep, dt, config = fly(args.drones, args.seconds, args.seed)
     drone = characterise(config)
-    fits = fit(p, v, a, u, dt, keep, SafetyFilterConfig().fitted(drone.lag_xy, drone.lag_z).lookahead_xy)
+    fits = fit(p, v, a, u, dt, keep, SafetyFilterConfig().fitted(drone.lag_xy, drone.lag_z).lookahead_xy, tilt)
     rows = {}
     for name, (coeffs, err) in fits.items():
         rows[name] = {"coeffs_s": None if coeffs is None else [float(c) for c in coeffs],
@@ -112,7 +127,8 @@ def main(argv=None) -> int:
     print(f"{args.drones} drones, {args.seconds:g} s of random commands, {rows['none']['steps']} control steps flown")
     print("| look-ahead | c1 (s) | c2 (s²) | rms m/s | p99 m/s | max m/s |\n|---|---:|---:|---:|---:|---:|")
     for name, label in (("none", "none (q = p)"), ("filter", "p + c1 v, the filter's look-ahead"),
-                        ("first", "p + c1 v, fitted"), ("second", "p + c1 v + c2 a, fitted")):
+                        ("first", "p + c1 v, fitted"), ("second", "p + c1 v + c2 a, fitted"),
+                        ("tilt", "p + c1 v + c2 a_tilt, fitted (a from the attitude)")):
         r, c = rows[name], rows[name]["coeffs_s"] or []
         cols = [f"{x:.3f}" for x in c] + ["–"] * (2 - len(c))
         print(f"| {label} | {' | '.join(cols)} | {r['rms']:.3f} | {r['p99']:.3f} | {r['max']:.3f} |")
