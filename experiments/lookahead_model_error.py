@@ -39,15 +39,15 @@ def fit(p, v, a, u, dt: float, keep, filter_c1: float | None = None, tilt=None):
     "filter": ([filter_c1], errors) for a given first-order look-ahead, and "tilt" the second-order fit with the
     acceleration ``tilt`` [W, T, 3] (:func:`tilt_accel`) in place of ``a``.
     """
-    dp, dv, da, dt_a = (np.diff(x, axis=1)[..., :2] / dt for x in (p, v, a, a if tilt is None else tilt))
+    dp, dv, da, dtilt = (np.diff(x, axis=1)[..., :2] / dt for x in (p, v, a, a if tilt is None else tilt))
     m = keep[:, 1:] & keep[:, :-1]
     target = (u[:, 1:, :2] - dp)[m].reshape(-1)
-    dv, da, dt_a = (x[m].reshape(-1, 1) for x in (dv, da, dt_a))
+    dv, da, dtilt = (x[m].reshape(-1, 1) for x in (dv, da, dtilt))
     out = {"none": (None, np.linalg.norm(target.reshape(-1, 2), axis=-1))}
     if filter_c1 is not None:
         out["filter"] = (np.array([filter_c1]), np.linalg.norm((target - filter_c1 * dv[:, 0]).reshape(-1, 2), axis=-1))
     fits = [("first", dv), ("second", np.concatenate([dv, da], 1))]
-    for name, x in fits + ([] if tilt is None else [("tilt", np.concatenate([dv, dt_a], 1))]):
+    for name, x in fits + ([] if tilt is None else [("tilt", np.concatenate([dv, dtilt], 1))]):
         coeffs = np.linalg.lstsq(x, target, rcond=None)[0]
         out[name] = (coeffs, np.linalg.norm((target - x @ coeffs).reshape(-1, 2), axis=-1))
     return out
@@ -98,8 +98,9 @@ def tilt_accel(quat, g: float = 9.81):
     """[..., 3] the acceleration a drone's attitude alone gives (quat [..., 4], body->world, [w, x, y, z]): its thrust
     along the body z axis, as large as holds its altitude, so horizontally g times the axis' tilt (vertically 0).
     What motion capture gives of every drone's acceleration without differentiating positions twice."""
-    w, x, y, z = np.moveaxis(quat, -1, 0)
-    axis = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)  # R e_z
+    from aswarm.envs.dynamics import quat_to_rotmat
+
+    axis = np.asarray(quat_to_rotmat(quat))[..., :, 2]  # the body z axis in the world: R e_z
     up = np.maximum(axis[..., 2:], 1e-3)
     return np.concatenate([g * axis[..., :2] / up, np.zeros_like(up)], -1)
 
