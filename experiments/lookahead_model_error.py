@@ -13,8 +13,8 @@ its episode ends. Over the control steps it flew, the horizontal (Δp + c1 Δv +
 it flew (after the command acceleration limit) by least squares, with c2 = 0 and free, and the fit's error
 |q' − u| reported: rms, 99th percentile, largest; beside them the filter's own look-ahead (0.9 times the drone's
 measured 63 % rise time, c2 = 0). ``a`` is MJX's acceleration of the last physics step; a last fit takes, in its
-place, the acceleration the drone's attitude gives (:func:`tilt_accel`: what motion capture sees of every drone, its
-neighbours' too, without differentiating positions twice). Prints a table;
+place, the acceleration the drone's attitude gives (``aswarm.core.geometry.tilt_accel``: what motion capture sees
+of every drone, its neighbours' too, without differentiating positions twice). Prints a table;
 ``--out`` also writes ``lookahead_model_error.json``.
 """
 
@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from aswarm.core.geometry import tilt_accel
 from aswarm.files import write_atomic
 
 
@@ -37,7 +38,7 @@ def fit(p, v, a, u, dt: float, keep, filter_c1: float | None = None, tilt=None):
     it; keep [W, T] bool: steps to use (a step t uses samples t and t + 1, both kept). Returns
     {"first": (coeffs, errors), "second": ..., "none": (None, errors)} with errors the |q' − u| [N] of each fit, and
     "filter": ([filter_c1], errors) for a given first-order look-ahead, and "tilt" the second-order fit with the
-    acceleration ``tilt`` [W, T, 3] (:func:`tilt_accel`) in place of ``a``.
+    acceleration ``tilt`` [W, T, 3] (``aswarm.core.geometry.tilt_accel``) in place of ``a``.
     """
     dp, dv, da, dtilt = (np.diff(x, axis=1)[..., :2] / dt for x in (p, v, a, a if tilt is None else tilt))
     m = keep[:, 1:] & keep[:, :-1]
@@ -92,17 +93,6 @@ def fly(worlds: int, seconds: float, seed: int):
 
     p, v, a, quat, u, done = map(np.asarray, jax.jit(jax.vmap(episode))(jax.random.split(k_reset, worlds), cmd))
     return p, v, a, tilt_accel(quat), u, ~np.cumsum(done, 1).astype(bool), dt, env.config
-
-
-def tilt_accel(quat, g: float = 9.81):
-    """[..., 3] the acceleration a drone's attitude alone gives (quat [..., 4], body->world, [w, x, y, z]): its thrust
-    along the body z axis, as large as holds its altitude, so horizontally g times the axis' tilt (vertically 0).
-    What motion capture gives of every drone's acceleration without differentiating positions twice."""
-    from aswarm.envs.dynamics import quat_to_rotmat
-
-    axis = np.asarray(quat_to_rotmat(quat))[..., :, 2]  # the body z axis in the world: R e_z
-    up = np.maximum(axis[..., 2:], 1e-3)
-    return np.concatenate([g * axis[..., :2] / up, np.zeros_like(up)], -1)
 
 
 def main(argv=None) -> int:

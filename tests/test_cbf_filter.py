@@ -781,6 +781,109 @@ def test_look_ahead_rows_are_the_plain_rows_at_the_look_ahead_points():
         np.testing.assert_allclose(np.asarray(b, float), a, atol=3e-5)
 
 
+def _tilted(rng, lead, max_tilt=0.3):
+    """Unit quaternions [lead..., 4] of random attitudes tilted up to ``max_tilt`` rad, any yaw."""
+    axis = rng.normal(size=lead + (3,))
+    axis[..., 2] = 0.0
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    half = rng.uniform(0.0, max_tilt, lead + (1,)) / 2
+    tilt = np.concatenate([np.cos(half), np.sin(half) * axis], -1)
+    yaw = rng.uniform(-np.pi, np.pi, lead) / 2
+    w1, x1, y1, z1 = np.moveaxis(tilt, -1, 0)
+    w2, z2 = np.cos(yaw), np.sin(yaw)  # yaw first (about z), then the tilt: q = tilt * yaw
+    return np.stack([w1 * w2 - z1 * z2, x1 * w2 + y1 * z2, y1 * w2 - x1 * z2, w1 * z2 + z1 * w2], -1)
+
+
+def test_second_order_rows_are_the_plain_rows_at_the_second_order_points():
+    """``lookahead_accel`` c2: every point moves by τ v + c2 a, a from each drone's attitude (its own quat, each
+    neighbour's columns), and the rows are the plain rows there; numpy, JAX and both filters agree on them."""
+    from aswarm.core import geometry
+    from aswarm.core.layout import CYL, NBR, OWN, ObsLayout
+
+    layout = ObsLayout(num_cylinders=3, num_neighbours=2, neighbour_accel=True)
+    rng = np.random.default_rng(21)
+    obs = _random_obs(rng, layout, (2, 3))
+    obs[..., layout.own_slices["quat"]] = _tilted(rng, (2, 3))
+    own, cyl, nbr = (x.copy() for x in layout.split(obs))
+    nbr_acc = rng.uniform(-3.0, 3.0, (2, 3, 2, 2))
+    obs = np.concatenate([own, cyl.reshape(2, 3, -1), nbr.reshape(2, 3, -1), nbr_acc.reshape(2, 3, -1)], -1)
+    gain = rng.uniform(0.3, 2.0, (2, 3))
+    kw = dict(drone_radius=0.06, margin=0.1, gate_half_opening=0.3, gate_bar=0.05)
+    tau_xy, tau_z, c2 = 0.207, 0.15, 0.039
+    a_own = geometry.tilt_accel(OWN.get(own, "quat"))
+    assert np.abs(a_own[..., :2]).max() > 0.5 and np.all(a_own[..., 2] == 0)
+    a_nbr = np.concatenate([nbr_acc, np.zeros_like(nbr_acc[..., :1])], -1)
+    v = OWN.get(own, "vel")
+    shift = np.array([tau_xy, tau_xy, tau_z]) * v + c2 * a_own
+    radius = np.linalg.norm(CYL.get(cyl, "rel_xy"), axis=-1) - CYL.get(cyl, "clearance")
+    rel = CYL.get(cyl, "rel_xy") + tau_xy * CYL.get(cyl, "vel_xy") - shift[..., None, :2]
+    cyl[..., CYL.slice("rel_xy")] = rel
+    cyl[..., CYL.column("clearance")] = np.linalg.norm(rel, axis=-1) - radius
+    nbr[..., NBR.slice("rel_pos")] += (np.array([tau_xy, tau_xy, tau_z]) * NBR.get(nbr, "rel_vel")
+                                       + c2 * (a_nbr - a_own[..., None, :]))
+    own[..., OWN.slice("altitude")] += shift[..., 2:]
+    own[..., OWN.slice("wall_clearance")] += shift @ np.asarray(barriers.WALL_NORMALS).T
+    for name in ("target_rel", "prev_gate_rel"):
+        own[..., OWN.slice(name)] += shift
+    plain = ObsLayout(num_cylinders=3, num_neighbours=2)
+    moved = np.concatenate([own, cyl.reshape(2, 3, -1), nbr.reshape(2, 3, -1)], -1)
+    ahead = barriers.obs_rows(layout, obs, gain, lookahead=(tau_xy, tau_z), lookahead_accel=c2, **kw)
+    by_hand = barriers.obs_rows(plain, moved, gain, **kw)
+    for a, b in zip(ahead, by_hand):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    first = barriers.obs_rows(layout, obs, gain, lookahead=(tau_xy, tau_z), **kw)
+    assert np.abs(ahead.h - first.h).max() > 1e-2  # the accelerations are used
+    rows_jax = jax.jit(lambda o, g: barriers.obs_rows(layout, o, g, lookahead=(tau_xy, tau_z), lookahead_accel=c2,
+                                                      **kw))(jnp.asarray(obs, jnp.float32),
+                                                             jnp.asarray(gain, jnp.float32))
+    for a, b in zip(ahead, rows_jax):
+        np.testing.assert_allclose(np.asarray(b, float), a, atol=5e-5)
+    # Both filters, with the braking rows and the reachable box too.
+    from aswarm.agents.cbf_filter import filter_from_obs
+
+    cmd, applied, rate = rng.uniform(-2.0, 2.0, (2, 3, 3)), rng.uniform(-1.5, 1.5, (2, 3, 3)), (3.0, 0.04)
+    for safety in (SafetyFilterConfig(margin=0.1, lookahead_xy=tau_xy, lookahead_z=tau_z, lookahead_accel=c2),
+                   SafetyFilterConfig(margin=0.1, lookahead_xy=tau_xy, lookahead_z=tau_z, lookahead_accel=c2,
+                                      braking=True, neighbour_braking=True, neighbour_braking_gain=10.0)):
+        res_np = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, safety, 0.3, 0.05, None, applied, rate)
+        with jax.enable_x64(True):
+            u_jax = jax.jit(lambda o, c, g, now, sf=safety: filter_from_obs(layout, o, c, g, U_MAX, 0.06, sf, 0.3,
+                                                                             0.05, None, now, rate).u)(
+                jnp.asarray(obs), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(applied))
+        np.testing.assert_allclose(np.asarray(u_jax), res_np.u, atol=1e-9)
+    # A layout without the neighbours' accelerations cannot take the second-order rows.
+    with pytest.raises(ValueError, match="no neighbour accelerations"):
+        barriers.obs_rows(plain, moved, gain, lookahead=(tau_xy, tau_z), lookahead_accel=c2, **kw)
+
+
+def test_second_order_point_of_a_tilted_drone_hand_derived():
+    """A drone at rest pitched 10° (thrust towards +x: a = g tan 10° = 1.7298 m/s² along +x), a cylinder of radius
+    0.15 m 1 m ahead (+x) and a neighbour 2 m ahead pitched −10°, towards the drone. At c2 = 0.039 s² the drone's
+    point moves 0.0675 m towards the cylinder and the neighbour's as far towards the drone: the cylinder's barrier
+    falls by 0.0675 m and the pair's by 0.1349 m; at rest the first-order point is the drone itself."""
+    from aswarm.core import observation
+    from aswarm.core.layout import ObsLayout
+
+    th = np.deg2rad(10.0)
+    pitch = np.array([np.cos(th / 2), 0.0, np.sin(th / 2), 0.0])
+    pos = np.array([[0.0, 0.0, 1.0], [2.0, 0.0, 1.0]])
+    back = pitch * [1.0, 0.0, -1.0, 0.0]
+    obs = observation.observe(pos, np.stack([pitch, back]), np.zeros((2, 3)), np.zeros((2, 3)),
+                              np.array([[[9.0, 0.0, 1.0]]] * 2), np.zeros((2, 1, 3)), np.zeros(2, int),
+                              np.ones(2, bool), np.array([[1.0, 0.0]]), np.zeros((1, 2)), np.array([0.15]),
+                              np.array([True]), 0.06, (-8.0, -6.0, 0.0), (8.0, 6.0, 3.0), neighbour_accel=True)
+    layout = ObsLayout(num_cylinders=1, num_neighbours=1, neighbour_accel=True)
+    kw = dict(drone_radius=0.06, margin=0.1)
+    first = barriers.obs_rows(layout, obs, np.ones(2), lookahead=(0.207, 0.15), **kw)
+    second = barriers.obs_rows(layout, obs, np.ones(2), lookahead=(0.207, 0.15), lookahead_accel=0.039, **kw)
+    d = 0.039 * 9.81 * np.tan(th)
+    assert d == pytest.approx(0.06746, abs=1e-5)
+    np.testing.assert_allclose(first.h[0, :2], [1.0 - 0.15 - 0.06 - 0.1, 2.0 - 0.12 - 0.1], atol=1e-12)
+    np.testing.assert_allclose(second.h[0, 0], first.h[0, 0] - d, atol=1e-12)
+    # the pair's barrier, ||Δq|| − 2 r − margin, with both points moved towards each other
+    np.testing.assert_allclose(second.h[0, 1], first.h[0, 1] - 2 * d, atol=1e-12)
+
+
 @pytest.mark.parametrize("lookahead, holds", [(0.0, False), (0.3, True)])
 def test_look_ahead_keeps_a_lagging_drone_off_the_floor(lookahead, holds):
     """A point mass whose velocity follows the command with a first-order lag τ = 0.3 s (v̇ = (u − v)/τ), told to
@@ -865,6 +968,17 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
         SafetyFilterConfig(moving_gain_max=1.0, hazard_accel=False)
+    # The second-order look-ahead: its c1 is its fit's own (kept when fitted: the vertical one still fitted), it
+    # needs one, and bundles from before it read back first order.
+    second = SafetyFilterConfig(lookahead_xy=0.207, lookahead_accel=0.039).fitted(0.5, 0.2)
+    assert (second.lookahead_xy, second.lookahead_accel) == (0.207, 0.039) and math.isclose(second.lookahead_z, 0.18)
+    assert from_manifest(json.loads(json.dumps(manifest_fields(second)))) == second
+    assert from_manifest(old).lookahead_accel == 0.0
+    with pytest.raises(ValueError, match=r"lookahead_accel=0.039 with lookahead_xy=0.0: allowed: lookahead_accel 0, "
+                                         r"or lookahead_xy > 0"):
+        SafetyFilterConfig(lookahead_accel=0.039)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_accel=-0.1: allowed: >= 0"):
+        SafetyFilterConfig(lookahead_accel=-0.1)
 
 
 def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch, tmp_path):
@@ -878,6 +992,21 @@ def test_train_flags_set_the_safety_filter_old_and_nested_spellings(monkeypatch,
     sf = seen[0].safety_filter
     assert (sf.gain_min, sf.fixed_gain, sf.margin, sf.max_iter) == (0.4, 0.9, 0.2, 12)
     assert dataclasses.replace(sf, gain_min=0.3, fixed_gain=1.5, margin=0.13, max_iter=16) == SafetyFilterConfig()
+
+
+def test_a_second_order_filter_needs_the_neighbours_accelerations_in_its_observation():
+    from aswarm.agents.config import TrainConfig
+    from aswarm.agents.train import Agent
+
+    sf = SafetyFilterConfig(lookahead_xy=0.207, lookahead_accel=0.039)
+    with pytest.raises(ValueError, match=r"lookahead_accel=0.039 with env filter_neighbour_accel=false: allowed: "
+                                         r"lookahead_accel 0, or --env filter_neighbour_accel=true"):
+        Agent.build(TrainConfig(scenario="hover", method="fixed_cbf", safety_filter=sf))
+    agent = Agent.build(TrainConfig(scenario="hover", method="fixed_cbf", safety_filter=sf,
+                                    env_overrides=(("filter_neighbour_accel", True),)))
+    assert agent.env.filter_layout.neighbour_accel and agent.config.safety_filter.lookahead_accel == 0.039
+    # A method without the filter never builds its rows: nothing to refuse.
+    assert Agent.build(TrainConfig(scenario="hover", method="mappo", safety_filter=sf)).env.wide_filter is False
 
 
 def test_the_gain_range_is_still_swept_by_its_flat_names_as_a_value_hyperparameter():

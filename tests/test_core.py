@@ -11,7 +11,17 @@ import pytest
 
 from aswarm.core import geometry as geo
 from aswarm.core import observation
-from aswarm.core.layout import CYL, CYL_FIELDS, NBR, NBR_FIELDS, OWN, OWN_FIELDS, PRESENT_THRESHOLD, ObsLayout
+from aswarm.core.layout import (
+    CYL,
+    CYL_FIELDS,
+    NBR,
+    NBR_ACCEL,
+    NBR_FIELDS,
+    OWN,
+    OWN_FIELDS,
+    PRESENT_THRESHOLD,
+    ObsLayout,
+)
 
 R = 0.06  # drone collision radius
 RNG = np.random.default_rng(0)
@@ -54,6 +64,22 @@ def test_named_fields_read_what_the_row_holds():
     assert CYL.present(jnp.asarray(cyl)).tolist() == [True, False]
     assert 0.0 < PRESENT_THRESHOLD < 1.0
     assert (OWN.dim, CYL.dim, NBR.dim) == tuple(sum(f[1] for f in t) for t in (OWN_FIELDS, CYL_FIELDS, NBR_FIELDS))
+
+
+def test_the_neighbours_accelerations_follow_every_column_the_policy_reads():
+    plain, lay = ObsLayout(2, 3), ObsLayout(2, 3, neighbour_accel=True)
+    assert lay.size == plain.size + 3 * NBR_ACCEL.dim and NBR_ACCEL.dim == 2
+    desc = lay.describe()
+    assert desc[:len(plain.describe())] == plain.describe()  # the policy's layout is a prefix
+    tail = desc[len(plain.describe()):]
+    assert [(d["group"], d["index"], d["name"], d["offset"]) for d in tail] == [
+        ("neighbour_accel", k, "tilt_accel", plain.size + 2 * k) for k in range(3)]
+    row = np.arange(lay.size, dtype=float)
+    own, cyl, nbr = lay.split(row)
+    np.testing.assert_array_equal(np.concatenate([own, cyl.ravel(), nbr.ravel()]), row[:plain.size])
+    np.testing.assert_array_equal(lay.neighbour_accels(row), row[plain.size:].reshape(3, 2))
+    with pytest.raises(ValueError, match="no neighbour accelerations"):
+        plain.neighbour_accels(row[:plain.size])
 
 
 def test_an_unknown_field_is_refused_in_one_line():
@@ -131,6 +157,7 @@ def _geometry_cases():
     prev = pos + RNG.normal(scale=0.3, size=(n, 3))
     gate_pos, gate_yaw = RNG.uniform(-1, 1, (g, 3)) + [0, 0, 1], RNG.uniform(-np.pi, np.pi, g)
     cyl = RNG.uniform(-1, 1, (m, 2))
+    tilted = RNG.normal(scale=0.2, size=(n, 4)) + [1.0, 0, 0, 0]  # attitudes up to ~25° off upright
     return {
         "gate_frames": (lambda a, b: geo.gate_frames(a, b, HALF, 0.05), (gate_pos, gate_yaw), (g, 5, 2, 3)),
         "closest_on_segment": (geo.closest_on_segment, (pos, prev, pos[::-1]), (n, 3)),
@@ -149,6 +176,7 @@ def _geometry_cases():
         "wall_clearance": (lambda p: geo.wall_clearance(p, np.array([-8.0, -6, 0]), np.array([8.0, 6, 3])), (pos,),
                            (n, 5)),
         "horizontal": (geo.horizontal, (gate_yaw,), (g, 3)),
+        "tilt_accel": (geo.tilt_accel, (tilted / np.linalg.norm(tilted, axis=-1, keepdims=True),), (n, 3)),
         "norm": (geo.norm, (pos,), (n,)),
     }
 
@@ -165,6 +193,22 @@ def test_geometry_is_the_same_on_numpy_and_jax(name):
             chex.assert_shape(got, shape)
             assert isinstance(got, jax.Array)
             np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=0, atol=tol)
+
+
+def test_tilt_acceleration_is_g_times_the_tangent_of_the_tilt_towards_where_the_thrust_points():
+    th = np.deg2rad(np.array([0.0, 10.0, 25.0]))
+    about_x = np.stack([np.cos(th / 2), np.sin(th / 2), 0 * th, 0 * th], -1)  # roll th: thrust axis (0, -sin, cos)
+    about_y = np.stack([np.cos(th / 2), 0 * th, np.sin(th / 2), 0 * th], -1)  # pitch th: (sin, 0, cos)
+    np.testing.assert_allclose(geo.tilt_accel(about_x), np.stack([0 * th, -9.81 * np.tan(th), 0 * th], -1),
+                               atol=1e-12)
+    np.testing.assert_allclose(geo.tilt_accel(about_y), np.stack([9.81 * np.tan(th), 0 * th, 0 * th], -1),
+                               atol=1e-12)
+    # A yaw alone tilts nothing; a yaw of 90° then a pitch turns the pitch's thrust from +x to +y.
+    yaw = np.array([np.cos(0.6), 0.0, 0.0, np.sin(0.6)])
+    np.testing.assert_allclose(geo.tilt_accel(yaw), np.zeros(3), atol=1e-12)
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    yaw_pitch = np.array([c * np.cos(th[1] / 2), -s * np.sin(th[1] / 2), c * np.sin(th[1] / 2), s * np.cos(th[1] / 2)])
+    np.testing.assert_allclose(geo.tilt_accel(yaw_pitch), [0.0, 9.81 * np.tan(th[1]), 0.0], atol=1e-12)
 
 
 def _scene(lead=(2,), n=5, k=3, m=4):

@@ -282,25 +282,37 @@ def test_a_k_nearest_policy_exports_for_another_swarm_size_and_flies_it(tmp_path
 
 def test_a_filter_that_sees_more_neighbours_than_the_policy_exports_and_flies_as_in_jax(tmp_path):
     """``filter_neighbours``: the 4-drone `obstacles` policy (3 neighbours) flown by 5 drones, its filter on all 4
-    others. The bundle says so, the runtime builds the filter's observation, and numpy equals ``Agent.act``."""
+    others and their accelerations (``filter_neighbour_accel``). The bundle says so, the runtime builds the filter's
+    observation, and numpy equals ``Agent.act``, with the first-order look-ahead and with the second-order one."""
     from aswarm.flight import runtime
 
-    extra = ["num_agents=5", "max_neighbours=3", "filter_neighbours=4"]
+    extra = ["num_agents=5", "max_neighbours=3", "filter_neighbours=4", "filter_neighbour_accel=true"]
     out = tmp_path / "b5"
     assert cli.main(["export", "--checkpoint", "pretrained:obstacles", "--out", str(out),
                      *(a for o in extra for a in ("--env", o))]) == 0
     b = fb.load_bundle(out)
-    assert b.manifest["env"]["filter_neighbours"] == 4
-    assert (b.layout.num_neighbours, b.filter_layout.num_neighbours) == (3, 4)
+    assert b.manifest["env"]["filter_neighbours"] == 4 and b.manifest["env"]["filter_neighbour_accel"] is True
+    assert (b.layout.num_neighbours, b.filter_layout.num_neighbours, b.filter_layout.neighbour_accel) == (3, 4, True)
     _, agent, st = evaluate.load_agent("pretrained:obstacles", None, extra)
     env = agent.env
     assert env.wide_filter and env.filter_layout == b.filter_layout
     s = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    step = jax.jit(env.step)
+    for _ in range(6):  # under way: the drones tilt, and so their accelerations are not 0
+        s = step(s, jnp.tile(jnp.array([1.0, 0.5, 0.3]), (5, 1)))
     obs, wide = np.asarray(s.obs, np.float64), np.asarray(s.filter_obs, np.float64)
     assert wide.shape == (5, b.filter_layout.size) and np.array_equal(wide[:, :b.layout.size], obs)
+    assert np.abs(b.filter_layout.neighbour_accels(wide)).max() > 0.3
     with jax.enable_x64(True):
         want = jax.jit(agent.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))
     np.testing.assert_allclose(runtime.run_policy(b, wide).u, np.asarray(want), rtol=0, atol=1e-9)
+    second = {"lookahead_xy": 0.207, "lookahead_accel": 0.039}
+    _, agent2, _ = evaluate.load_agent("pretrained:obstacles", None, extra, filter_overrides=second)
+    b2 = dataclasses.replace(b, safety=dataclasses.replace(b.safety, **second))
+    with jax.enable_x64(True):
+        want2 = jax.jit(agent2.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))
+    np.testing.assert_allclose(runtime.run_policy(b2, wide).u, np.asarray(want2), rtol=0, atol=1e-9)
+    assert agent2.config.safety_filter.lookahead_xy == 0.207  # the second-order fit's own, not the drone's lag
     # The runtime builds the filter's observation from poses and flies all 5 drones with it.
     ctl = runtime.FlightController(b, 5)
     ctl.reset(goals=np.stack([np.arange(5) * 0.5, np.full(5, 2.0), np.ones(5)], -1))

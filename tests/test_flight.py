@@ -186,16 +186,21 @@ def test_numpy_observation_equals_the_simulators(race):
     np.testing.assert_allclose(obs, s.obs, rtol=0, atol=2e-5)
 
 
-@pytest.mark.parametrize("k", [2, 6])
-def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
+@pytest.mark.parametrize("k, accel", [(2, False), (6, False), (2, True)])
+def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k, accel):
+    """With ``accel`` (``filter_neighbour_accel``) the filter's observation carries each of those neighbours'
+    accelerations from their attitudes after the policy's columns, the same in both."""
     from aswarm.envs.dynamics import DroneState
 
     n = 5
-    env = envs.make("race", num_agents=n, max_neighbours=k, filter_neighbours=0)  # the policy's rows alone
+    env = envs.make("race", num_agents=n, max_neighbours=k, filter_neighbours=0,  # the policy's rows alone
+                    filter_neighbour_accel=accel)
     s = jax.jit(env.reset)(jax.random.PRNGKey(1))
     rng = np.random.default_rng(0)
     pos = rng.uniform(-1.5, 1.5, (n, 3)) + [0.0, 0.0, 1.6]
-    quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    half = rng.uniform(-0.15, 0.15, (n, 2))  # tilted up to 17° about x and y
+    quat = np.stack([np.ones(n), half[:, 0], half[:, 1], np.zeros(n)], -1)
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
     vel, ang = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
     finished = np.array([False, True, False, False, False])  # drone 1 is no neighbour
     tr = s.tracker.replace(finished=jnp.asarray(finished))
@@ -206,10 +211,21 @@ def test_numpy_observation_of_the_k_nearest_neighbours_equals_the_simulators(k):
     got = observation.observe(pos, quat, vel, ang, lay.waypoints, normals, np.asarray(tr.target), ~finished,
                           lay.cyl_center, np.zeros_like(lay.cyl_center), lay.cyl_radius, lay.cyl_present,
                           env.config.cf.collision_radius, env.config.arena_low, env.config.arena_high,
-                          max_neighbours=k)
-    assert got.shape == (n, env.observation_size)
+                          max_neighbours=k, neighbour_accel=accel)
+    assert got.shape == (n, env.filter_layout.size) and env.wide_filter == accel
     np.testing.assert_allclose(got, np.asarray(want), rtol=0, atol=2e-5)
-    nbr = env.obs_layout.split(got)[2]  # [n, k, 7]: nearest first, then absent rows
+    nbr = env.filter_layout.split(got)[2]  # [n, k, 7]: nearest first, then absent rows
+    if accel:  # each row's acceleration is its drone's: found by position
+        acc = env.filter_layout.neighbour_accels(got)
+        tilt = geometry.tilt_accel(quat)[:, :2]
+        for i in range(n):
+            for j in range(k):
+                if nbr[i, j, 6] > 0:
+                    other = np.argmin(np.linalg.norm(pos - (pos[i] + nbr[i, j, :3]), axis=-1))
+                    np.testing.assert_allclose(acc[i, j], tilt[other], atol=1e-12)
+                else:
+                    assert np.all(acc[i, j] == 0)
+        assert np.abs(acc).max() > 0.5
     present = nbr[..., 6]
     assert np.all(np.diff(present, axis=-1) <= 0)  # present rows first
     assert np.all(present.sum(-1) == np.minimum(k, np.where(finished, 4, 3)))

@@ -55,19 +55,6 @@ def test_fit_recovers_a_second_order_response_exactly_and_a_first_order_one_from
     np.testing.assert_allclose(fits["tilt"][0], fits["second"][0], rtol=1e-9)
 
 
-def test_tilt_acceleration_is_g_times_the_tangent_of_the_tilt_towards_where_the_thrust_points():
-    mod = load("lookahead_model_error")
-    th = np.deg2rad(np.array([0.0, 10.0, 25.0]))
-    about_x = np.stack([np.cos(th / 2), np.sin(th / 2), 0 * th, 0 * th], -1)  # roll th: thrust axis (0, -sin, cos)
-    about_y = np.stack([np.cos(th / 2), 0 * th, np.sin(th / 2), 0 * th], -1)  # pitch th: (sin, 0, cos)
-    # (float32: the simulator's rotation, envs.dynamics.quat_to_rotmat)
-    np.testing.assert_allclose(mod.tilt_accel(about_x), np.stack([0 * th, -9.81 * np.tan(th), 0 * th], -1), atol=1e-5)
-    np.testing.assert_allclose(mod.tilt_accel(about_y), np.stack([9.81 * np.tan(th), 0 * th, 0 * th], -1), atol=1e-5)
-    # A yaw alone tilts nothing.
-    yaw = np.array([np.cos(0.6), 0.0, 0.0, np.sin(0.6)])
-    np.testing.assert_allclose(mod.tilt_accel(yaw), np.zeros(3), atol=1e-5)
-
-
 def test_script_runs_small_and_rejects_bad_sizes(tmp_path, capsys):
     mod = load("lookahead_model_error")
     assert mod.main(["--drones", "2", "--seconds", "2", "--out", str(tmp_path)]) == 0

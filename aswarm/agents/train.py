@@ -86,6 +86,12 @@ class Agent:
     def build(cls, config: TrainConfig, env: envs.SwarmEnv | None = None) -> Agent:
         """The agent of ``config`` on ``env``; its ``config`` has the safety filter fitted to the drone."""
         env = env or make_env(config)
+        # (checked on the env the agent flies, which an evaluation may override: not on config.env)
+        if config.uses_filter and config.safety_filter.lookahead_accel > 0 and not env.filter_layout.neighbour_accel:
+            raise ValueError(f"invalid safety_filter.lookahead_accel={config.safety_filter.lookahead_accel!r} with "
+                             "env filter_neighbour_accel=false: allowed: lookahead_accel 0, or --env "
+                             "filter_neighbour_accel=true (the filter's observation then carries the neighbours' "
+                             "accelerations)")
         config = fit_safety_filter(config, env)
         n = env.num_agents
         return cls(

@@ -319,7 +319,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
              moving_gain_max: float = 0.0, brake: tuple[bool, bool] = (True, False),
-             braking_gain: float = 0.0) -> Rows:
+             braking_gain: float = 0.0, lookahead_accel: float = 0.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -338,6 +338,11 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     with a first-order lag τ (v̇ = (u − v)/τ) has q̇ = v + τ v̇ = u exactly, so the single-integrator rows
     above hold for q on the lagging drone; and p, the exponential average of q's past (ṗ = (q − p)/τ),
     stays in every convex safe set (floor, walls) that q keeps. (0, 0) is the plain single integrator.
+    ``lookahead_accel`` c2 > 0 (s²) makes the horizontal point second order, q = p + τ_xy v + c2 a, with a each
+    drone's acceleration from its attitude (:func:`aswarm.core.geometry.tilt_accel`: its own from its ``quat``, each
+    neighbour's from the layout's ``neighbour_accel`` columns, which it then needs): the firmware drone behind its
+    command limit is no first-order lag, and on it q' = u holds to 0.16 m/s rms with (τ_xy, c2) = (0.207, 0.039)
+    where the best first-order point leaves 0.44 (``experiments/lookahead_model_error.py``).
 
     ``cyl_accel`` [..., n, M] (m/s², or None: the rows above, every cylinder holding its velocity): a bound on each
     cylinder's acceleration, for scenes where cylinders move. The observation holds each one's velocity but not its
@@ -380,6 +385,13 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
         nbr_pos = nbr_pos + tau * nbr_vel
         normals = xp.asarray(WALL_NORMALS, dtype=obs.dtype)
         clearance = clearance + xp.sum(normals * (tau * vel)[..., None, :], axis=-1)
+    if lookahead_accel > 0:  # (static, as the look-ahead above)
+        own_accel = lookahead_accel * geometry.tilt_accel(OWN.get(own, "quat"))
+        nbr_xy = layout.neighbour_accels(obs)
+        at = at + own_accel
+        nbr_pos = nbr_pos + lookahead_accel * xp.concat([nbr_xy, xp.zeros_like(nbr_xy[..., :1])], axis=-1)
+        normals = xp.asarray(WALL_NORMALS, dtype=obs.dtype)
+        clearance = clearance + xp.sum(normals * own_accel[..., None, :], axis=-1)
 
     def gate(p, q, rel_cols, normal_cols):  # gate_rows' (point q, centre, direction, present) for the columns' gates
         normal = own[..., normal_cols]
@@ -421,7 +433,8 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
-                    brake=(safety.braking, safety.neighbour_braking), braking_gain=safety.neighbour_braking_gain)
+                    brake=(safety.braking, safety.neighbour_braking), braking_gain=safety.neighbour_braking_gain,
+                    lookahead_accel=safety.lookahead_accel)
 
 
 def row_groups(layout) -> tuple[tuple[str, int], ...]:

@@ -21,6 +21,10 @@ from aswarm.core.numpy_namespace import NUMPY
 FAR = 1e3
 # Segments of zero length are treated as points: |ab|^2 is floored here.
 _MIN_SQ_LENGTH = 1e-12
+# m/s²: the gravity the safety filter's second-order look-ahead tilts (:func:`tilt_accel`), the drone model's.
+GRAVITY = 9.81
+# The thrust axis' vertical component is floored here in :func:`tilt_accel`: a drone on its side is finite.
+_MIN_UPRIGHT = 1e-3
 
 
 def namespace(*xs) -> ModuleType:
@@ -39,6 +43,18 @@ def norm(x, axis: int = -1):
     """Euclidean norm over ``axis`` (the same operations as ``jnp.linalg.norm``, so the same bits)."""
     xp = namespace(x)
     return xp.sqrt(xp.sum(x * x, axis=axis))
+
+
+def tilt_accel(quat, gravity: float = GRAVITY):
+    """[..., 3] the acceleration a drone's attitude alone gives (quat [..., 4], body->world, [w, x, y, z]): its
+    thrust along the body z axis R e_z, as large as holds its altitude, so horizontally g (R e_z)_xy / (R e_z)_z and
+    vertically 0. What motion capture gives of every drone's acceleration without differentiating positions twice
+    (``experiments/lookahead_model_error.py`` fits the safety filter's second-order look-ahead on it)."""
+    xp = namespace(quat)
+    w, x, y, z = (quat[..., i] for i in range(4))
+    up = xp.maximum(1 - 2 * (x * x + y * y), _MIN_UPRIGHT)
+    scale = gravity / up
+    return xp.stack([scale * 2 * (x * z + w * y), scale * 2 * (y * z - w * x), xp.zeros_like(up)], axis=-1)
 
 
 def horizontal(yaw):

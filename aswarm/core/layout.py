@@ -41,6 +41,14 @@ NBR_FIELDS = (
     ("present", 1, "1 if the neighbour is still flying, else 0 (all its features are 0)"),
 )
 
+# The safety filter's columns after the neighbour rows where its look-ahead is second order
+# (``SafetyFilterConfig.lookahead_accel``, ``EnvConfig.filter_neighbour_accel``): one row per neighbour row, in
+# their order. The policy never reads them (they follow every column it reads).
+NBR_ACCEL_FIELDS = (
+    ("tilt_accel", 2, "m/s², world, horizontal: the neighbour's acceleration from its attitude, "
+                      "g (R e_z)_xy / (R e_z)_z (aswarm.core.geometry.tilt_accel; 0 when absent)"),
+)
+
 
 # Presence flags are exactly 0 or 1 in the raw observation; tested against the midpoint so that no
 # round-off (float32, a normaliser's round trip) can flip one.
@@ -103,6 +111,7 @@ class FieldGroup:
 OWN = FieldGroup("own", OWN_FIELDS)
 CYL = FieldGroup("cylinder", CYL_FIELDS)
 NBR = FieldGroup("neighbour", NBR_FIELDS)
+NBR_ACCEL = FieldGroup("neighbour_accel", NBR_ACCEL_FIELDS)
 
 
 def neighbour_slots(num_agents: int, max_neighbours: int, filter_neighbours: int = 0) -> tuple[int, int]:
@@ -128,16 +137,22 @@ def observed_neighbours(num_agents: int, max_neighbours: int, filter_neighbours:
 
 @dataclasses.dataclass(frozen=True)
 class ObsLayout:
-    """Where each part of an observation row lives: ``[own | cylinders | neighbours]``."""
+    """Where each part of an observation row lives: ``[own | cylinders | neighbours]``, and with
+    ``neighbour_accel`` (the safety filter's observation only) ``[... | neighbours' accelerations]``."""
 
     num_cylinders: int
     num_neighbours: int
     own_dim: int = OWN.dim
     cyl_dim: int = CYL.dim
     nbr_dim: int = NBR.dim
+    neighbour_accel: bool = False
 
     @property
     def size(self) -> int:
+        return self._neighbours_end + (self.num_neighbours * NBR_ACCEL.dim if self.neighbour_accel else 0)
+
+    @property
+    def _neighbours_end(self) -> int:
         return self.own_dim + self.num_cylinders * self.cyl_dim + self.num_neighbours * self.nbr_dim
 
     @property
@@ -160,14 +175,26 @@ class ObsLayout:
         a = self.own_dim
         b = a + self.num_cylinders * self.cyl_dim
         lead = obs.shape[:-1]
+        nbr = obs[..., b:self._neighbours_end] if self.neighbour_accel else obs[..., b:]
         return (obs[..., :a], obs[..., a:b].reshape(*lead, self.num_cylinders, self.cyl_dim),
-                obs[..., b:].reshape(*lead, self.num_neighbours, self.nbr_dim))
+                nbr.reshape(*lead, self.num_neighbours, self.nbr_dim))
+
+    def neighbour_accels(self, obs):
+        """[..., K, NBR_ACCEL.dim] the neighbours' accelerations (rows of :data:`NBR_ACCEL`), in the order of their
+        rows; a layout without them raises. Works on numpy and JAX arrays alike."""
+        if not self.neighbour_accel:
+            raise ValueError("this observation layout has no neighbour accelerations: allowed: a layout with "
+                             "neighbour_accel=True (EnvConfig.filter_neighbour_accel)")
+        return obs[..., self._neighbours_end:].reshape(*obs.shape[:-1], self.num_neighbours, NBR_ACCEL.dim)
 
     def describe(self) -> list[dict]:
         """Field-by-field description with offsets, units and frames (the manifest's ``observation.fields``)."""
         out, off = [], 0
-        for group, fields, count in (("own", OWN_FIELDS, 1), ("cylinder", CYL_FIELDS, self.num_cylinders),
-                                     ("neighbour", NBR_FIELDS, self.num_neighbours)):
+        groups = [("own", OWN_FIELDS, 1), ("cylinder", CYL_FIELDS, self.num_cylinders),
+                  ("neighbour", NBR_FIELDS, self.num_neighbours)]
+        if self.neighbour_accel:
+            groups.append((NBR_ACCEL.name, NBR_ACCEL_FIELDS, self.num_neighbours))
+        for group, fields, count in groups:
             for k in range(count):
                 for name, size, unit in fields:
                     out.append(dict(group=group, index=k, name=name, offset=off, size=size, meaning=unit))

@@ -14,8 +14,8 @@ import functools
 
 import numpy as np
 
-from aswarm.core.geometry import namespace, norm, wall_clearance
-from aswarm.core.layout import CYL, MIN_TARGET_DIST, NBR, OWN
+from aswarm.core.geometry import namespace, norm, tilt_accel, wall_clearance
+from aswarm.core.layout import CYL, MIN_TARGET_DIST, NBR, NBR_ACCEL, OWN
 
 
 @functools.lru_cache(maxsize=64)
@@ -67,7 +67,7 @@ def nearest_rows(nbr, present, k: int):
 
 
 def observe(pos, quat, vel, ang_vel, waypoints, normals, target, flying, cyl_pos, cyl_vel, cyl_radius, cyl_present,
-            collision_radius: float, arena_low, arena_high, max_neighbours: int = 0):
+            collision_radius: float, arena_low, arena_high, max_neighbours: int = 0, neighbour_accel: bool = False):
     """Every drone's observation [..., n, D] (numpy or JAX, as the arguments).
 
     pos, vel, ang_vel [..., n, 3] (world m, world m/s, body rad/s); quat [..., n, 4] wxyz;
@@ -77,7 +77,9 @@ def observe(pos, quat, vel, ang_vel, waypoints, normals, target, flying, cyl_pos
     lost is not a neighbour); cyl_pos, cyl_vel [..., M, 2]; cyl_radius [..., M]; cyl_present [..., M] bool.
     arena_low, arena_high [3]: the arena box (m), whose walls and ceiling the row measures the drone against.
     ``max_neighbours``: 0 gives every other drone in index order, K the K nearest flying ones, nearest
-    first, padded with absent rows. Arguments without the leading axes broadcast.
+    first, padded with absent rows. ``neighbour_accel``: after the neighbour rows, each one's acceleration from its
+    attitude (:data:`aswarm.core.layout.NBR_ACCEL`, in the rows' order; the safety filter's second-order look-ahead).
+    Arguments without the leading axes broadcast.
     """
     xp = namespace(pos)
     lead, n = pos.shape[:-2], pos.shape[-2]
@@ -129,10 +131,17 @@ def observe(pos, quat, vel, ang_vel, waypoints, normals, target, flying, cyl_pos
     rel_pos = of_others(pos) - pos[..., :, None, :]
     nbr = _assemble(xp, NBR, {"rel_pos": rel_pos, "rel_vel": of_others(vel) - vel[..., :, None, :],
                               "present": xp.ones_like(rel_pos[..., :1])}, drones + (n - 1,))
+    if neighbour_accel:  # carried beside each row through the selection below, then split off
+        accel = _assemble(xp, NBR_ACCEL, {"tilt_accel": of_others(tilt_accel(quat)[..., :2])}, drones + (n - 1,))
+        nbr = xp.concat([nbr, accel], axis=-1)
     if not _all(seen):
         nbr = xp.where(seen[..., None], nbr, 0.0)
     if max_neighbours:
         nbr = nearest_rows(nbr, seen, max_neighbours)
     k_nbr = nbr.shape[-2]
-    return xp.concat([own, xp.reshape(cyl, drones + (M * CYL.dim,)), xp.reshape(nbr, drones + (k_nbr * NBR.dim,))],
-                     axis=-1)
+    tail = []
+    if neighbour_accel:
+        nbr, accel = nbr[..., :NBR.dim], nbr[..., NBR.dim:]
+        tail = [xp.reshape(accel, drones + (k_nbr * NBR_ACCEL.dim,))]
+    return xp.concat([own, xp.reshape(cyl, drones + (M * CYL.dim,)), xp.reshape(nbr, drones + (k_nbr * NBR.dim,)),
+                      *tail], axis=-1)

@@ -34,6 +34,13 @@ class SafetyFilterConfig:
     # (aswarm.core.barriers.obs_rows). 0 is the single-integrator model.
     lookahead_xy: float = 0.0
     lookahead_z: float = 0.0
+    # s²: > 0 makes the horizontal look-ahead point second order, p + lookahead_xy v + lookahead_accel a, with a each
+    # drone's acceleration from its attitude (aswarm.core.barriers.obs_rows); the filter's observation then carries
+    # its neighbours' (EnvConfig.filter_neighbour_accel). lookahead_xy is then this fit's own (not fitted to the
+    # drone's lag): on the default firmware drone (0.207, 0.039) leave 0.16 m/s rms between the point's speed and
+    # the command, against 0.44 for the best first-order point (experiments/lookahead_model_error.py; README,
+    # "The second-order look-ahead"). 0: first order, as runs and bundles from before it.
+    lookahead_accel: float = 0.0
     # With fit_to_drone: set the two look-aheads to lookahead_scale times the drone's measured lags (63 % rise
     # times of a 1 m/s step, horizontal and vertical). The rise time is the exact look-ahead for a first-order lag
     # only; the firmware drone behind the command acceleration limit follows a command ramp at most 0.25 s late
@@ -111,12 +118,16 @@ class SafetyFilterConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
         for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
-                     "lookahead_scale", "escape_stuck", "escape_near"):
+                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
             raise ValueError(f"invalid safety_filter.moving_gain_max={self.moving_gain_max!r} with hazard_accel=false: "
                              "allowed: 0, or hazard_accel=true")
+        if self.lookahead_accel > 0 and self.lookahead_xy <= 0:  # the fit's c1 is not the drone's lag
+            raise ValueError(f"invalid safety_filter.lookahead_accel={self.lookahead_accel!r} with lookahead_xy="
+                             f"{self.lookahead_xy!r}: allowed: lookahead_accel 0, or lookahead_xy > 0 (its fit's c1, "
+                             "e.g. 0.207 with 0.039)")
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
 
@@ -130,13 +141,16 @@ class SafetyFilterConfig:
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
         """The filter for a drone whose velocity reaches 63 % of a step in ``lag_xy`` s horizontally and ``lag_z``
         vertically: gains scaled by TUNED_LAG / lag_xy where the drone is slower than the one they were tuned on,
-        and with ``fit_lookahead`` the look-aheads set to ``lookahead_scale`` times the lags (unchanged if
-        ``fit_to_drone`` is off)."""
+        and with ``fit_lookahead`` the look-aheads set to ``lookahead_scale`` times the lags (the horizontal one
+        kept where ``lookahead_accel`` > 0: a second-order fit's own; everything unchanged if ``fit_to_drone`` is
+        off)."""
         if not self.fit_to_drone:
             return self
         scale = min(1.0, TUNED_LAG / lag_xy)
         k = self.lookahead_scale
         ahead = {"lookahead_xy": k * lag_xy, "lookahead_z": k * lag_z} if self.fit_lookahead else {}
+        if self.lookahead_accel > 0:
+            ahead.pop("lookahead_xy", None)
         return dataclasses.replace(self, gain_min=self.gain_min * scale, gain_max=self.gain_max * scale,
                                    fixed_gain=self.fixed_gain * scale, moving_gain_max=self.moving_gain_max * scale,
                                    fit_to_drone=False, **ahead)
@@ -186,6 +200,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     (bundles from before this config have them too), so a missing one is an error, not a default."""
     # Bundles from before these fields hold fitted (or hand-set) gains for a single-integrator filter.
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
+              "lookahead_accel": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,

@@ -74,6 +74,10 @@ class EnvConfig:
     # filter on the 3 nearest and none with it on the 8 nearest (128 episodes each; README, swarms). 0 or <= K:
     # the filter takes the policy's rows, as before this field.
     filter_neighbours: int = 8
+    # The safety filter's observation carries each of its neighbours' accelerations from their attitude (what
+    # motion capture measures of every drone), for a second-order look-ahead (SafetyFilterConfig.lookahead_accel,
+    # which needs it; aswarm.core.layout.NBR_ACCEL). The policy's observation is unchanged.
+    filter_neighbour_accel: bool = False
     # Track starts: "column", single file along the racing line, so the swarm reaches each gate one
     # drone at a time (a 4-drone grid jammed at the first gate, see README); or a compact "grid".
     start_formation: str = "column"
@@ -192,7 +196,7 @@ def legacy_drone_stored() -> dict:
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
                "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash,
                "max_moving": -1, "filter_neighbours": 0, "cf.motor_tau_down": 0.0,
-               "moving_speed_scale": (1.0, 1.0), "wrong_side_clearance": 0.0}
+               "moving_speed_scale": (1.0, 1.0), "wrong_side_clearance": 0.0, "filter_neighbour_accel": False}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -278,6 +282,8 @@ def validate(c: EnvConfig) -> None:
     for name in ("num_obstacles", "num_moving", "min_moving", "num_gates", "max_neighbours", "filter_neighbours"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
+    if not isinstance(c.filter_neighbour_accel, bool):
+        _fail("filter_neighbour_accel", c.filter_neighbour_accel, "allowed: true or false")
     if c.min_moving > c.num_moving:
         _fail("min_moving", c.min_moving, f"must be <= num_moving={c.num_moving}")
     if not isinstance(c.max_moving, int) or isinstance(c.max_moving, bool) or not (

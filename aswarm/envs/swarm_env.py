@@ -126,10 +126,11 @@ class SwarmEnv:
         n = config.num_agents
         k_policy, k_filter = neighbour_slots(n, config.max_neighbours, config.filter_neighbours)
         self.obs_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_policy)
-        # The safety filter's rows (State.filter_obs): the policy's, or more nearest neighbours (a static choice:
-        # without them every program traces as before the field).
-        self.filter_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_filter)
-        self.wide_filter = k_filter > k_policy
+        # The safety filter's rows (State.filter_obs): the policy's, or more nearest neighbours, or with the
+        # neighbours' accelerations (static choices: without them every program traces as before the fields).
+        self.filter_layout = ObsLayout(num_cylinders=config.num_cylinders, num_neighbours=k_filter,
+                                       neighbour_accel=config.filter_neighbour_accel)
+        self.wide_filter = self.filter_layout != self.obs_layout
         self._observed = observed_neighbours(n, config.max_neighbours, config.filter_neighbours)  # observe's argument
         stagger = config.start_interval if self.kind == "track" else 0.0
         self._release_time = np.arange(n, dtype=np.float32) * stagger - 1e-6
@@ -456,7 +457,8 @@ class SwarmEnv:
 
     def _observe(self, drones: DroneState, layout: Layout, tr: Tracker, t) -> jax.Array:
         """Every drone's observation [n, D] (:func:`aswarm.core.observation.observe`, as the flight runtime's), with
-        the filter's neighbour rows where it takes more than the policy (``_policy_view`` cuts the policy's)."""
+        the filter's neighbour rows where it takes more than the policy, and its neighbours' accelerations where it
+        takes them (``filter_layout``; ``_policy_view`` cuts the policy's)."""
         cfg = self.config
         if self.kind == "track":
             normals = jnp.broadcast_to(geo.horizontal(layout.gate_yaw), layout.waypoints.shape)
@@ -465,7 +467,8 @@ class SwarmEnv:
         cyl_pos, cyl_vel = cylinders_at(layout, t)
         return observe(drones.pos, drones.quat, drones.vel, drones.ang_vel, layout.waypoints, normals, tr.target,
                        ~tr.finished, cyl_pos, cyl_vel, layout.cyl_radius, layout.cyl_present,
-                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high, self._observed)
+                       cfg.cf.collision_radius, cfg.arena_low, cfg.arena_high, self._observed,
+                       cfg.filter_neighbour_accel)
 
     def _metrics(self, tr: Tracker) -> dict:
         """Episode outcome so far; read it on the step where ``done`` is 1."""

@@ -169,13 +169,19 @@ class Bundle:
         """``EnvConfig.filter_neighbours`` (bundles from before it: 0, the filter on the policy's rows)."""
         return int(self.env.get("filter_neighbours", 0))
 
+    @property
+    def filter_neighbour_accel(self) -> bool:
+        """``EnvConfig.filter_neighbour_accel`` (bundles from before it: false)."""
+        return bool(self.env.get("filter_neighbour_accel", False))
+
     @functools.cached_property
     def filter_layout(self) -> ObsLayout:
         """The layout of the observations the runtime builds and the safety filter's rows come from: the policy's
-        (``layout``), or with more nearest neighbours (``EnvConfig.filter_neighbours``; bundles from before it: the
-        policy's), of which the policy reads the prefix ``layout.size``."""
+        (``layout``), or with more nearest neighbours (``EnvConfig.filter_neighbours``) and with their accelerations
+        (``EnvConfig.filter_neighbour_accel``; bundles from before them: the policy's), of which the policy reads the
+        prefix ``layout.size``."""
         _, k = neighbour_slots(self.num_agents, self.max_neighbours, self.filter_neighbours)
-        return dataclasses.replace(self.layout, num_neighbours=k)
+        return dataclasses.replace(self.layout, num_neighbours=k, neighbour_accel=self.filter_neighbour_accel)
 
     @property
     def max_speed(self) -> float:

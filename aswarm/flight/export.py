@@ -74,6 +74,7 @@ def build_manifest(config: TrainConfig, env: SwarmEnv, *, source: str, trained_u
     geo = env.geometry
     env_fields = dict(num_agents=ec.num_agents, num_cylinders=ec.num_cylinders, num_gates=ec.num_gates,
                       max_neighbours=ec.max_neighbours, filter_neighbours=ec.filter_neighbours,
+                      filter_neighbour_accel=ec.filter_neighbour_accel,
                       max_speed=ec.max_speed, command_accel_limit=ec.command_accel_limit, policy_freq=ec.policy_freq,
                       collision_radius=ec.cf.collision_radius,
                       arena_low=list(ec.arena_low), arena_high=list(ec.arena_high),

@@ -156,6 +156,7 @@ class FlightController:
         # observe's neighbour rows: the safety filter's where it sees more nearest neighbours than the policy
         # (bundle.filter_layout), which then reads their prefix (run_policy).
         self._observed = observed_neighbours(bundle.num_agents, bundle.max_neighbours, bundle.filter_neighbours)
+        self._neighbour_accel = bundle.filter_layout.neighbour_accel  # observe's: from each drone's measured attitude
         self._lead: tuple[int, ...] | None = None
 
     # ------------------------------------------------------------------ course
@@ -300,7 +301,8 @@ class FlightController:
         cyl_pos, cyl_vel, cyl_radius, cyl_present, lost_obstacles = self._obstacle_arrays(obstacles)
         flying = seen & ~self._finished if not self.safety.finished_are_neighbours else seen
         obs = observe(p_now, q, vel, ang, self._wp, self._normals, self._target, flying, cyl_pos, cyl_vel, cyl_radius,
-                      cyl_present, self._collision_radius, self._arena_low, self._arena_high, self._observed)
+                      cyl_present, self._collision_radius, self._arena_low, self._arena_high, self._observed,
+                      self._neighbour_accel)
         pol = run_policy(self.bundle, obs, self._obstacle_accel(obstacles), self._sent.u[-1])
 
         u = pol.u
