@@ -633,6 +633,66 @@ def test_a_braking_drone_stops_short_of_a_cylinder_in_the_command_limits_double_
     assert lowest < 0.0
 
 
+def test_gate_braking_row_hand_derived():
+    """A gate at (0, 0, 1.5), passage +x, opening ±0.3 m, bars 0.05 m: its post runs from the bottom bar's middle
+    (z = 1.5 − 0.325) to the floor. A drone 0.5 m before the post (at z = 0.8) flying at it at 1.5 m/s: n = −x,
+    h = 0.5 − (0.025 + 0.06 + 0.1) = 0.315, B = √(2·3·h) − 1.5 and the row is −u_x ≥ −1.5 − dt (√(3/2h) (−1.5) + γ B).
+    Moving along the post changes nothing; sideways the turning term 0.5²/0.5 lowers b by dt · 0.5."""
+    gamma, dt, h = 1.0, 0.04, 0.315
+    kw = dict(half_opening=0.3, bar=0.05, drone_radius=0.06, margin=0.1)
+    centre, normal = np.array([0.0, 0.0, 1.5]), np.array([1.0, 0.0, 0.0])
+    pos = np.array([-0.5, 0.0, 0.8])
+    B = np.sqrt(2 * 3.0 * h) - 1.5
+    want = -1.5 - dt * (np.sqrt(3.0 / (2 * h)) * -1.5 + gamma * B)
+    for cmd, shift in (([1.5, 0.0, 0.0], 0.0), ([1.5, 0.0, 0.5], 0.0), ([1.5, 0.5, 0.0], dt * 0.5**2 / 0.5)):
+        for xp in (np, jnp):
+            rows = barriers.gate_rows(xp.asarray(pos), xp.asarray(centre), xp.asarray(normal), xp.asarray(True), gamma,
+                                      braking=(xp.asarray(cmd), 3.0, dt), **kw)
+            post = 4  # the 4 edges, then the post
+            np.testing.assert_allclose(np.asarray(rows.h)[post], h, atol=1e-6)
+            np.testing.assert_allclose(np.asarray(rows.A)[post], [-1.0, 0.0, 0.0], atol=1e-6)
+            np.testing.assert_allclose(np.asarray(rows.b)[post], want - shift, rtol=1e-5)
+    assert want == pytest.approx(-1.3641, abs=1e-4)  # 3.4 m/s² of braking this step: B < 0 already
+    plain = barriers.gate_rows(pos, centre, normal, np.asarray(True), gamma, **kw)
+    np.testing.assert_allclose(plain.b[4], -gamma * h)
+
+
+def test_a_gate_braking_drone_stops_short_of_a_bar_in_the_command_limits_double_integrator():
+    """The cylinders' braking test for a gate frame: a drone at 1 m height flying +x at 2 m/s at a gate's vertical
+    edge 2 m ahead (the gate's centre 0.325 m to its side: the edge's axis on the drone's line), nominal command
+    2 m/s on, gain 5/s, the command limit 3 m/s² on the reachable box. The gate's velocity rows brake too late and
+    it hits the bar; with the gate's braking rows it stops at the margin."""
+    r, dt, step, c = 0.06, 0.04, 0.12, 0.3 + 0.05 / 2
+    layout = ObsLayout(num_cylinders=0, num_neighbours=0)
+    own = layout.own_slices
+    safety = SafetyFilterConfig(margin=0.05, gate_braking=True)
+    centre = np.array([2.0, -c, 1.0])
+
+    def fly(cfg):
+        q, now, lowest = np.array([0.0, 0.0, 1.0]), np.array([2.0, 0.0, 0.0]), np.inf
+        for _ in range(100):
+            obs = np.zeros((1, layout.size))
+            obs[0, own["altitude"]] = q[2]
+            obs[0, own["vel"]] = now
+            obs[0, own["wall_clearance"]] = 50.0
+            obs[0, own["target_rel"]] = q - centre
+            obs[0, own["target_normal"]] = [1.0, 0.0, 0.0]
+            res = np_cbf.filter_from_obs(layout, obs, np.array([[2.0, 0.0, 0.0]]), np.array([5.0]), 2.0, r, cfg,
+                                         0.3, 0.05, applied=now[None], command_rate=(3.0, dt))
+            now = np.clip(res.u[0], now - step, now + step)
+            q = q + dt * now
+            lowest = min(lowest, float(geometry.gate_clearance(q[None], centre[None], np.array([[1.0, 0.0, 0.0]]), 0.3,
+                                                                0.05, r)[0, 0]))
+        return lowest, now
+
+    from aswarm.core import geometry
+
+    lowest, now = fly(safety)
+    assert lowest > 0.045 and np.abs(now).max() < 0.01
+    lowest, _ = fly(dataclasses.replace(safety, gate_braking=False, braking=True))  # the box, the gate's velocity rows
+    assert lowest < 0.0
+
+
 def test_neighbour_braking_row_hand_derived():
     """Two drones' look-ahead points on the x axis, this one at the origin and the neighbour 0.5 m beyond the pair's
     distance (h = 0.5) flying at it at s m/s while this one hovers, command limit 3 m/s² each, dt 0.04 s, share 1/2:
@@ -844,7 +904,8 @@ def test_second_order_rows_are_the_plain_rows_at_the_second_order_points():
     cmd, applied, rate = rng.uniform(-2.0, 2.0, (2, 3, 3)), rng.uniform(-1.5, 1.5, (2, 3, 3)), (3.0, 0.04)
     for safety in (SafetyFilterConfig(margin=0.1, lookahead_xy=tau_xy, lookahead_z=tau_z, lookahead_accel=c2),
                    SafetyFilterConfig(margin=0.1, lookahead_xy=tau_xy, lookahead_z=tau_z, lookahead_accel=c2,
-                                      braking=True, neighbour_braking=True, neighbour_braking_gain=10.0)):
+                                      braking=True, neighbour_braking=True, neighbour_braking_gain=10.0,
+                                      gate_braking=True)):
         res_np = np_cbf.filter_from_obs(layout, obs, cmd, gain, U_MAX, 0.06, safety, 0.3, 0.05, None, applied, rate)
         with jax.enable_x64(True):
             u_jax = jax.jit(lambda o, c, g, now, sf=safety: filter_from_obs(layout, o, c, g, U_MAX, 0.06, sf, 0.3,
@@ -973,7 +1034,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     second = SafetyFilterConfig(lookahead_xy=0.207, lookahead_accel=0.039).fitted(0.5, 0.2)
     assert (second.lookahead_xy, second.lookahead_accel) == (0.207, 0.039) and math.isclose(second.lookahead_z, 0.18)
     assert from_manifest(json.loads(json.dumps(manifest_fields(second)))) == second
-    assert from_manifest(old).lookahead_accel == 0.0
+    assert from_manifest(old).lookahead_accel == 0.0 and from_manifest(old).gate_braking is False
+    assert SafetyFilterConfig(gate_braking=True).brakes((3.0, 0.04)) and not SafetyFilterConfig().brakes((3.0, 0.04))
     with pytest.raises(ValueError, match=r"lookahead_accel=0.039 with lookahead_xy=0.0: allowed: lookahead_accel 0, "
                                          r"or lookahead_xy > 0"):
         SafetyFilterConfig(lookahead_accel=0.039)

@@ -284,9 +284,9 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     m/s²): the cylinders' acceleration bounds, used where ``safety.hazard_accel`` (see ``obs_rows``).
 
     ``applied`` [..., n, 3] the commands the drones fly now and ``command_rate`` = (command acceleration limit m/s²,
-    control period s), where ``safety.braking`` or ``safety.neighbour_braking``: the QP chooses among the commands
-    the limit lets the drone reach this step (``cmd`` first moved into that box, as the drone would take it), and the
-    cylinders' rows (``braking``) or the neighbours' (``neighbour_braking``) are the braking barriers of ``obs_rows``.
+    control period s), where ``safety.brakes``: the QP chooses among the commands the limit lets the drone reach this
+    step (``cmd`` first moved into that box, as the drone would take it), and the cylinders' rows (``braking``), the
+    neighbours' (``neighbour_braking``) or the gate frames' (``gate_braking``) are the braking barriers of ``obs_rows``.
     """
     def one(o, g, u, a, now):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
         braking, box = None, None

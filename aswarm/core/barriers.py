@@ -239,13 +239,21 @@ def wall_rows(clearance, gamma, *, drone_radius: float, margin: float = 0.0) -> 
 
 
 def gate_rows(pos, gate_center, gate_normal, present, gamma, *, half_opening: float, bar: float,
-              drone_radius: float, margin: float = 0.0) -> Rows:
+              drone_radius: float, margin: float = 0.0, braking: tuple | None = None) -> Rows:
     """Rows for the frame of one gate: its 4 edges and the post to the floor (5 round bars).
 
     pos, gate_center (centre of the opening), gate_normal (horizontal direction of passage) [..., 3];
     present [...] bool; gamma [..., 5] or broadcastable. h = distance to the bar's axis − (bar/2 + r_d +
     margin), ∇h the unit vector from the nearest point of the bar to the drone: a drone flying through
     the middle of the opening sees only sideways normals and is not slowed.
+
+    ``braking`` = (cmd [..., 3], decel, dt): the bars' rows are braking barriers instead, as
+    :func:`cylinder_braking_rows`' for a still cylinder, B = √(2 decel h) + n · cmd ≥ 0 and Ḃ ≥ −γ B:
+
+        n · u ≥ n · cmd − dt (|cmd_⊥|²/d + √(decel / 2h) n · cmd + γ B),
+
+    with cmd_⊥ the command without its components along n and along the bar's axis e (n turns at cmd_⊥ / d
+    beside a bar; at its ends, where the bar is a point, it turns faster, so this is the smaller, safe, value).
     """
     xp = geometry.namespace(pos, gate_center)
     yaw = xp.atan2(gate_normal[..., 1], gate_normal[..., 0])
@@ -253,7 +261,18 @@ def gate_rows(pos, gate_center, gate_normal, present, gamma, *, half_opening: fl
     p = pos[..., None, :]
     dist, n = unit(p - geometry.closest_on_segment(p, frames[..., 0, :], frames[..., 1, :]))
     h = dist - (bar / 2 + drone_radius + margin)
-    return Rows(n, -gamma * h, xp.zeros(h.shape, dtype=bool) | present[..., None], h)
+    mask = xp.zeros(h.shape, dtype=bool) | present[..., None]
+    if braking is None:
+        return Rows(n, -gamma * h, mask, h)
+    cmd, decel, dt = braking
+    c = cmd[..., None, :]
+    _, e = unit(frames[..., 1, :] - frames[..., 0, :])
+    n_c, e_c = xp.sum(n * c, axis=-1), xp.sum(e * c, axis=-1)
+    perp_sq = xp.maximum(xp.sum(c * c, axis=-1) - n_c * n_c - e_c * e_c, 0.0)
+    B = xp.sqrt(2.0 * decel * xp.maximum(h, 0.0)) + n_c
+    rate = (perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
+            + xp.sqrt(decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * n_c + gamma * B)
+    return Rows(n, n_c - dt * rate, mask, h)
 
 
 def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
@@ -318,7 +337,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
-             moving_gain_max: float = 0.0, brake: tuple[bool, bool] = (True, False),
+             moving_gain_max: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
@@ -354,8 +373,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
     2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
-    ``brake`` = (cylinders, neighbours): which of the two groups take braking rows when ``braking`` is given. The
-    cylinders' replace their velocity rows; the neighbours' (:func:`neighbour_braking_rows`) come on top of theirs,
+    ``brake`` = (cylinders, neighbours, gate frames): which groups take braking rows when ``braking`` is given. The
+    cylinders' and the gate frames' (:func:`gate_rows`' braking form) replace their velocity rows; the neighbours' (:func:`neighbour_braking_rows`) come on top of theirs,
     as K more rows after the previous gate's: the braking barrier bounds the closing speed from afar, where the
     velocity rows do not see it coming, and the velocity rows hold near, where the braking barrier's √h lets a pair
     close at a speed only exact braking on both sides would take back (alone, they collided in 98 % of the race-16
@@ -417,8 +436,11 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
     walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)
+    gate_braking = None
+    if braking is not None and len(brake) > 2 and brake[2]:  # (cmd, decel, dt), cmd shaped as the gates' points
+        gate_braking = (braking[0][..., None, :] if numpy else braking[0], braking[1], braking[2])
     frames = [gate_rows(*g, gamma[..., None, :] if numpy else gamma, half_opening=gate_half_opening, bar=gate_bar,
-                        drone_radius=drone_radius, margin=margin) for g in gates]
+                        drone_radius=drone_radius, margin=margin, braking=gate_braking) for g in gates]
     if numpy:
         frames = [_merge_gates(f) for f in frames]
     return concat([*points, walls, *frames, *after])
@@ -433,7 +455,8 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
-                    brake=(safety.braking, safety.neighbour_braking), braking_gain=safety.neighbour_braking_gain,
+                    brake=(safety.braking, safety.neighbour_braking, safety.gate_braking),
+                    braking_gain=safety.neighbour_braking_gain,
                     lookahead_accel=safety.lookahead_accel)
 
 

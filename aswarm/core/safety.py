@@ -67,6 +67,10 @@ class SafetyFilterConfig:
     # follower 0.75 m behind, closing at 1 m/s, may speed up towards its leader at 0.5 m/s² at most. Not fitted to
     # the drone (the lag is in the barrier's look-ahead). Runs and bundles from before read back 0.
     neighbour_braking_gain: float = 0.0
+    # Braking rows for the gate frames' bars in place of their velocity rows (aswarm.core.barriers.gate_rows): the
+    # drone's speed towards a bar must leave room to brake at the command limit. Independent of the two above; any
+    # of the three puts the QP on the reachable commands (reachable_box). Runs and bundles from before: false.
+    gate_braking: bool = False
     # With braking or neighbour_braking: the QP chooses among the commands the drone can reach this step (the command
     # limit's box around the command it flies now). False: the rows alone, the limit applying after the filter as
     # it does without braking rows. At a braking gain of 10/s the box made two firmware drones head on stop apart on
@@ -134,9 +138,10 @@ class SafetyFilterConfig:
 
     def brakes(self, command_rate: tuple[float, float] | None) -> bool:
         """Whether the filter takes braking rows (and, with ``reachable_box``, the reachable box) for a drone whose
-        command changes at most ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking`` or
-        ``neighbour_braking`` on and a limit to brake at (none: no)."""
-        return bool((self.braking or self.neighbour_braking) and command_rate and command_rate[0] > 0)
+        command changes at most ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking``,
+        ``neighbour_braking`` or ``gate_braking`` on and a limit to brake at (none: no)."""
+        return bool((self.braking or self.neighbour_braking or self.gate_braking) and command_rate
+                    and command_rate[0] > 0)
 
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
         """The filter for a drone whose velocity reaches 63 % of a step in ``lag_xy`` s horizontally and ``lag_z``
@@ -157,7 +162,8 @@ class SafetyFilterConfig:
 
 
 # The config's true/false fields; every other field is a number.
-_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "neighbour_braking", "reachable_box", "escape")
+_FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "neighbour_braking", "gate_braking",
+          "reachable_box", "escape")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -202,7 +208,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
               "lookahead_accel": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
-              "neighbour_braking": False, "neighbour_braking_gain": 0.0, "reachable_box": True,
+              "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,
               "escape_near": 0.3, "moving_gain_max": 0.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
