@@ -377,9 +377,10 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     cylinders' and the gate frames' (:func:`gate_rows`' braking form) replace their velocity rows; the neighbours'
     (:func:`neighbour_braking_rows`) come on top of theirs, as K more rows after the previous gate's: the braking
     barrier bounds the closing speed from afar, where the velocity rows do not see it coming, and the velocity rows
-    hold near, where the braking barrier's √h lets a pair close at a speed only exact braking on both sides would take back (alone, they collided in 98 % of the race-16
-    episodes, README). ``braking_gain`` (1/s, 0: the drone's gain) is the class-K gain of the neighbours' braking
-    rows: B is a speed margin that braking alone keeps, so its gain can be far above the velocity rows'.
+    hold near, where the braking barrier's √h lets a pair close at a speed only exact braking on both sides would
+    take back (alone, they collided in 98 % of the race-16 episodes, README). ``braking_gain`` (1/s, 0: the drone's
+    gain) is the class-K gain of the neighbours' braking rows: B is a speed margin that braking alone keeps, so its
+    gain can be far above the velocity rows'.
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
