@@ -297,12 +297,14 @@ def test_a_filter_that_sees_more_neighbours_than_the_policy_exports_and_flies_as
     env = agent.env
     assert env.wide_filter and env.filter_layout == b.filter_layout
     s = jax.jit(env.reset)(jax.random.PRNGKey(3))
-    step = jax.jit(env.step)
-    for _ in range(6):  # under way: the drones tilt, and so their accelerations are not 0
-        s = step(s, jnp.tile(jnp.array([1.0, 0.5, 0.3]), (5, 1)))
     obs, wide = np.asarray(s.obs, np.float64), np.asarray(s.filter_obs, np.float64)
     assert wide.shape == (5, b.filter_layout.size) and np.array_equal(wide[:, :b.layout.size], obs)
-    assert np.abs(b.filter_layout.neighbour_accels(wide)).max() > 0.3
+    # Under way the drones tilt (at rest every acceleration is 0): tilted attitudes and accelerations written in.
+    rng = np.random.default_rng(4)
+    quat = np.concatenate([np.ones((5, 1)), rng.uniform(-0.15, 0.15, (5, 2)), np.zeros((5, 1))], -1)
+    wide[:, b.layout.own_slices["quat"]] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    wide[:, b.layout.size:] = rng.uniform(-2.5, 2.5, (5, wide.shape[1] - b.layout.size))
+    obs = wide[:, :b.layout.size]
     with jax.enable_x64(True):
         want = jax.jit(agent.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))
     np.testing.assert_allclose(runtime.run_policy(b, wide).u, np.asarray(want), rtol=0, atol=1e-9)
@@ -312,6 +314,7 @@ def test_a_filter_that_sees_more_neighbours_than_the_policy_exports_and_flies_as
     with jax.enable_x64(True):
         want2 = jax.jit(agent2.act)(st["params"], st["obs_norm"], jnp.asarray(obs), None, jnp.asarray(wide))
     np.testing.assert_allclose(runtime.run_policy(b2, wide).u, np.asarray(want2), rtol=0, atol=1e-9)
+    assert np.abs(np.asarray(want2) - np.asarray(want)).max() > 1e-3  # the accelerations moved the rows
     assert agent2.config.safety_filter.lookahead_xy == 0.207  # the second-order fit's own, not the drone's lag
     # The runtime builds the filter's observation from poses and flies all 5 drones with it.
     ctl = runtime.FlightController(b, 5)
