@@ -120,6 +120,13 @@ def cylinder_rows(pos, center, radius, vel, present, gamma, *, drone_radius: flo
     return Rows(A, b, present, h)
 
 
+def _braking_speed(h, decel):
+    """(√(2 decel h), its slope √(decel / 2h)) of the braking barriers: the speed from which braking at ``decel``
+    stops within the gap h (0 inside the barrier), and how fast it grows with h (h floored at BRAKING_MIN_GAP)."""
+    xp = geometry.namespace(h)
+    return xp.sqrt(2.0 * decel * xp.maximum(h, 0.0)), xp.sqrt(decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP)))
+
+
 def cylinder_braking_rows(pos, cmd, center, radius, vel, present, gamma, *, accel, lag: float, decel: float,
                           dt: float, drone_radius: float, margin: float = 0.0) -> Rows:
     """Rows for vertical cylinders with relative degree 2: a braking-distance barrier on a drone whose command
@@ -151,9 +158,9 @@ def cylinder_braking_rows(pos, cmd, center, radius, vel, present, gamma, *, acce
     n_w = xp.sum(n_xy * w, axis=-1)
     w_n = n_w - lag * accel
     perp_sq = xp.maximum(xp.sum(w * w, axis=-1) - n_w * n_w, 0.0)
-    B = xp.sqrt(2.0 * decel * xp.maximum(h, 0.0)) + w_n
-    rate = (accel - perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
-            - xp.sqrt(decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * w_n)
+    speed, slope = _braking_speed(h, decel)
+    B = speed + w_n
+    rate = accel - perp_sq / xp.maximum(dist, BRAKING_MIN_GAP) - slope * w_n
     b = xp.sum(n_xy * cmd[..., None, :2], axis=-1) + dt * (rate - gamma * B)
     A = xp.concat([n_xy, xp.zeros_like(n_xy[..., :1])], axis=-1)
     return Rows(A, b, present, h)
@@ -216,9 +223,9 @@ def neighbour_braking_rows(pos, cmd, nbr_pos, nbr_vel, present, gamma, *, decel:
     w = cmd[..., None, :] - nbr_vel
     n_w = xp.sum(n * w, axis=-1)
     perp_sq = xp.maximum(xp.sum(w * w, axis=-1) - n_w * n_w, 0.0)
-    B = xp.sqrt(2.0 * pair_decel * xp.maximum(h, 0.0)) + n_w
-    rate = (perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
-            + xp.sqrt(pair_decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * n_w + gamma * B)
+    speed, slope = _braking_speed(h, pair_decel)
+    B = speed + n_w
+    rate = perp_sq / xp.maximum(dist, BRAKING_MIN_GAP) + slope * n_w + gamma * B
     b = xp.sum(n * cmd[..., None, :], axis=-1) - dt * share * rate
     return Rows(n, b, present, h)
 
@@ -269,9 +276,9 @@ def gate_rows(pos, gate_center, gate_normal, present, gamma, *, half_opening: fl
     _, e = unit(frames[..., 1, :] - frames[..., 0, :])
     n_c, e_c = xp.sum(n * c, axis=-1), xp.sum(e * c, axis=-1)
     perp_sq = xp.maximum(xp.sum(c * c, axis=-1) - n_c * n_c - e_c * e_c, 0.0)
-    B = xp.sqrt(2.0 * decel * xp.maximum(h, 0.0)) + n_c
-    rate = (perp_sq / xp.maximum(dist, BRAKING_MIN_GAP)
-            + xp.sqrt(decel / (2.0 * xp.maximum(h, BRAKING_MIN_GAP))) * n_c + gamma * B)
+    speed, slope = _braking_speed(h, decel)
+    B = speed + n_c
+    rate = perp_sq / xp.maximum(dist, BRAKING_MIN_GAP) + slope * n_c + gamma * B
     return Rows(n, n_c - dt * rate, mask, h)
 
 
@@ -373,7 +380,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
     2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
-    ``brake`` = (cylinders, neighbours, gate frames): which groups take braking rows when ``braking`` is given. The
+    ``brake`` = (cylinders, neighbours[, gate frames]): which groups take braking rows when ``braking`` is given. The
     cylinders' and the gate frames' (:func:`gate_rows`' braking form) replace their velocity rows; the neighbours'
     (:func:`neighbour_braking_rows`) come on top of theirs, as K more rows after the previous gate's: the braking
     barrier bounds the closing speed from afar, where the velocity rows do not see it coming, and the velocity rows
