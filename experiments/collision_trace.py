@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
             rows_obs = s.obs if s.filter_obs is None else s.filter_obs
             gain = agent.filter_gain(params, obs_norm, s.obs)
             rows = barriers.filter_rows(layout, rows_obs, gain, sf, drone_radius=r,
-                                        gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar)
+                                        gate_half_opening=cfg.gate_half_opening, gate_bar=cfg.gate_bar,
+                                        whole_swarm=barriers.sees_whole_swarm(layout, rows_obs))
             h = jnp.where(rows.mask, rows.h, geo.FAR)
             h_groups = jnp.stack([jnp.min(h[:, a:b], -1, initial=geo.FAR) for a, b in zip(bounds[:-1], bounds[1:])], -1)
             n2 = env.step(s, res.u)

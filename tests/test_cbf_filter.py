@@ -249,6 +249,47 @@ def test_neighbour_rows_split_the_pair_condition():
     np.testing.assert_allclose(ci.b, [-gamma * h / 2], atol=1e-5)
 
 
+def test_closing_split_leaves_a_braking_leader_a_small_share_and_still_adds_up_to_the_pair_condition():
+    """A leader at x = 1 m flying on at 0.2 m/s, its follower at x = 0 closing at 1 m/s, softness s = 0.25 m/s: the
+    leader closes at 0, the follower at 1, so the leader's share is (0 + s) / (0 + 1 + 2 s) = 1/6 and the
+    follower's 5/6. At a gap h = 0.1 m and γ = 1 /s the leader's row asks n · u ≥ (5/6) 0.2 + (1/6) 1 − h/6 =
+    0.3167 m/s of it, where the halves asked 0.6 − h/2 = 0.55 (on, towards what it brakes for)."""
+    r, margin, gamma, soft, least = 0.05, 0.0, 1.0, 0.25, 0.1
+    p_lead, p_follow = np.array([1.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])
+    v_lead, v_follow = np.array([0.2, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    p_lead = p_lead + np.array([2 * r + 0.1 - 1.0, 0.0, 0.0])  # the gap h = 0.1 m
+    w_lead = barriers.closing_share(p_lead, v_lead, p_follow[None], v_follow[None], soft=soft, least=least)
+    w_follow = barriers.closing_share(p_follow, v_follow, p_lead[None], v_lead[None], soft=soft, least=least)
+    np.testing.assert_allclose(w_lead, [1 / 6])
+    np.testing.assert_allclose(w_follow, [5 / 6])
+    lead = neighbour_rows(p_lead, v_lead, p_follow[None], v_follow[None], np.ones(1, bool), gamma, drone_radius=r,
+                          margin=margin, share=w_lead)
+    np.testing.assert_allclose(lead.h, [0.1])
+    np.testing.assert_allclose(lead.A, [[1.0, 0.0, 0.0]])
+    np.testing.assert_allclose(lead.b, [5 / 6 * 0.2 + 1 / 6 - 0.1 / 6])
+    halves = neighbour_rows(p_lead, v_lead, p_follow[None], v_follow[None], np.ones(1, bool), gamma, drone_radius=r,
+                            margin=margin)
+    np.testing.assert_allclose(halves.b, [0.55])
+    # Both opening the gap, or sliding past each other: halves. A follower far faster: the clip's floor. Random
+    # pairs' rows add up to the pair condition (the neighbour computes 1 - w), in JAX as in numpy.
+    for v_i, v_k in ((v_lead, -v_follow), (np.array([0.0, 1.0, 0.0]), np.array([0.0, -2.0, 0.5]))):
+        np.testing.assert_allclose(barriers.closing_share(p_lead, v_i, p_follow[None], v_k[None], soft=soft,
+                                                          least=least), [0.5])
+    np.testing.assert_allclose(barriers.closing_share(p_lead, np.zeros(3), p_follow[None], 50 * v_follow[None],
+                                                      soft=soft, least=least), [least])
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        p_i, p_k, v_i, v_k = rng.normal(size=(4, 3))
+        w_i = barriers.closing_share(jnp.asarray(p_i), jnp.asarray(v_i), jnp.asarray(p_k)[None],
+                                     jnp.asarray(v_k)[None], soft=soft, least=least)
+        w_k = barriers.closing_share(p_k, v_k, p_i[None], v_i[None], soft=soft, least=least)
+        np.testing.assert_allclose(np.asarray(w_i) + w_k, [1.0], atol=1e-6)
+        ci = neighbour_rows(p_i, v_i, p_k[None], v_k[None], np.ones(1, bool), gamma, drone_radius=r,
+                            share=np.asarray(w_i, float))
+        ck = neighbour_rows(p_k, v_k, p_i[None], v_i[None], np.ones(1, bool), gamma, drone_radius=r, share=w_k)
+        np.testing.assert_allclose(ci.b + ck.b, -gamma * ci.h, atol=1e-5)
+
+
 def test_floor_row():
     con = floor_row(jnp.array([0.0, 0.0, 0.5]), jnp.array([1.0]), z_min=0.1)
     np.testing.assert_allclose(con.h, [0.4], atol=1e-6)
@@ -552,6 +593,22 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
                                                                 now, rate).u)(
             jnp.asarray(close), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel), jnp.asarray(applied))
     np.testing.assert_allclose(np.asarray(u_jax), res_nb.u, atol=1e-9)
+    # The neighbours split by closing speed in place of halves: the same in both, and it changes the commands.
+    split = dataclasses.replace(safety, closing_split=0.3)
+    res_split = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, split, 0.3, 0.05)
+    res_half = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, safety, 0.3, 0.05)
+    assert np.abs(res_split.u - res_half.u).max() > 1e-3
+    with jax.enable_x64(True):
+        u_jax = jax.jit(lambda o, c, g: filter_from_obs(layout, o, c, g, U_MAX, 0.06, split, 0.3, 0.05).u)(
+            jnp.asarray(close), jnp.asarray(cmd), jnp.asarray(gain))
+    np.testing.assert_allclose(np.asarray(u_jax), res_split.u, atol=1e-9)
+    # Where the filter sees only some of the swarm (2 neighbours of 5 others: the same drones as two swarms of 6), a
+    # pair may be held from one side only, so the split stays in halves.
+    assert barriers.sees_whole_swarm(layout, close)
+    six = [np.concatenate([x, x], 1) for x in (close, cmd, gain)]
+    assert not barriers.sees_whole_swarm(layout, six[0])
+    np.testing.assert_array_equal(np_cbf.filter_from_obs(layout, *six, U_MAX, 0.06, split, 0.3, 0.05).u,
+                                  np_cbf.filter_from_obs(layout, *six, U_MAX, 0.06, safety, 0.3, 0.05).u)
 
 
 def test_gate_rows_cap_a_centred_drone_hand_derived():
@@ -978,7 +1035,8 @@ def test_look_ahead_keeps_a_lagging_drone_off_the_floor(lookahead, holds):
 
 # ---------------------------------------------------------------- SafetyFilterConfig
 def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map_into_it():
-    cfg = SafetyFilterConfig(margin=0.2, gain_min=0.5, gain_max=3.0, neighbour_share=0.7, max_iter=12)
+    cfg = SafetyFilterConfig(margin=0.2, gain_min=0.5, gain_max=3.0, neighbour_share=0.7, max_iter=12,
+                             closing_split=0.4)
     assert from_manifest(json.loads(json.dumps(manifest_fields(cfg)))) == cfg
     # A bundle exported before the config (the entries it always had, as the pretrained policy's) reads back
     # as the old defaults, as used (not to be fitted again); one that lacks an entry is a one-line error.
@@ -1008,6 +1066,10 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(gain_min=3.0)
     with pytest.raises(ValueError, match="invalid safety_filter.neighbour_share"):
         SafetyFilterConfig(neighbour_share=0.0)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.closing_share_min=0.6: allowed: \(0, 0.5\]"):
+        SafetyFilterConfig(closing_split=0.3, closing_share_min=0.6)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.closing_split=-0.3: allowed: >= 0"):
+        SafetyFilterConfig(closing_split=-0.3)
     with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"):
         SafetyFilterConfig(lookahead_z=-0.1)
     with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
@@ -1024,7 +1086,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert SafetyFilterConfig(fit_lookahead=False).fitted(0.5, 0.2).lookahead_xy == 0.0
     # The moving cylinders' gain cap is a gain: fitted with the others; off (0) in bundles from before it.
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
-    assert from_manifest(old).moving_gain_max == 0.0
+    assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):

@@ -288,6 +288,8 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     step (``cmd`` first moved into that box, as the drone would take it), and the cylinders' rows (``braking``), the
     neighbours' (``neighbour_braking``) or the gate frames' (``gate_braking``) are the braking barriers of ``obs_rows``.
     """
+    whole_swarm = barriers.sees_whole_swarm(layout, obs)
+
     def one(o, g, u, a, now):  # per drone, under vmap: the rows and the QP of one drone, as the filter always traced
         braking, box = None, None
         if now is not None:
@@ -297,7 +299,7 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
             braking = (now, command_rate[0], command_rate[1])
         rows = barriers.filter_rows(layout, o, g, safety, drone_radius=drone_radius,
                                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=a,
-                                    braking=braking)
+                                    braking=braking, whole_swarm=whole_swarm)
         # (a static choice: a filter without it traces as it did before it existed)
         weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
                                                                               rows.b.shape[-1])

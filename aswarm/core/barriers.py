@@ -192,6 +192,29 @@ def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: 
     return Rows(n, b, present, h)
 
 
+def closing_share(pos, vel, nbr_pos, nbr_vel, *, soft: float, least: float):
+    """[..., K] this drone's share of each pair's neighbour row (``share`` of :func:`neighbour_rows`), split by
+    closing speed rather than in halves.
+
+    pos, vel [..., 3] this drone; nbr_pos, nbr_vel [..., K, 3]. With n the unit normal from the neighbour, this
+    drone closes at c = max(0, −n · v) and the neighbour at c_k = max(0, n · v_k), and
+
+        w = (c + s) / (c + c_k + 2 s),   clipped to [least, 1 − least],
+
+    with s = ``soft`` (m/s) the speed below which the split stays near halves. The neighbour, seeing the same
+    positions and velocities, computes 1 − w (c and c_k swap), so the pair's two rows still add up to the pair
+    condition: the split stays sound. The drone that closes keeps the larger share: a drone ahead of a follower is
+    no longer pushed on by it, but with :func:`neighbour_rows`' velocity reference a small share also holds the
+    drone near its own velocity along n, so it may not brake much either (README, "Splitting a pair by closing
+    speed": on the race it flew slower and hit more gate frames).
+    """
+    xp = geometry.namespace(pos, nbr_pos)
+    _, n = unit(pos[..., None, :] - nbr_pos)
+    own = xp.maximum(-xp.sum(n * vel[..., None, :], axis=-1), 0.0)
+    other = xp.maximum(xp.sum(n * nbr_vel, axis=-1), 0.0)
+    return xp.clip((own + soft) / (own + other + 2.0 * soft), least, 1.0 - least)
+
+
 def neighbour_braking_rows(pos, cmd, nbr_pos, nbr_vel, present, gamma, *, decel: float, dt: float,
                            drone_radius: float, margin: float = 0.0, share=0.5) -> Rows:
     """Rows for the other drones with relative degree 2: :func:`cylinder_braking_rows`' barrier for a pair of drones
@@ -345,7 +368,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
              moving_gain_max: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
-             braking_gain: float = 0.0, lookahead_accel: float = 0.0) -> Rows:
+             braking_gain: float = 0.0, lookahead_accel: float = 0.0,
+             closing_split: tuple[float, float] | None = None) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -388,6 +412,9 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     take back (alone, they collided in 98 % of the race-16 episodes, README). ``braking_gain`` (1/s, 0: the drone's
     gain) is the class-K gain of the neighbours' braking rows: B is a speed margin that braking alone keeps, so its
     gain can be far above the velocity rows'.
+
+    ``closing_split`` = (soft, least): the neighbours' rows split each pair by :func:`closing_share` (taken at the
+    look-ahead points) in place of ``neighbour_share``; None: ``neighbour_share``.
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -432,6 +459,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
         gates = [gate(pos[..., None, :], at[..., None, :], _GATE_REL_COLS, _GATE_NORMAL_COLS)]
     else:
         gates = [gate(pos, at, OWN.slice(rel), OWN.slice(normal)) for rel, normal in _GATE_FIELDS]
+    if closing_split is not None:  # (static: without it the rows trace as before)
+        neighbour_share = closing_share(at, vel, nbr_pos, nbr_vel, soft=closing_split[0], least=closing_split[1])
     gamma = xp.asarray(gain, dtype=obs.dtype)[..., None]
     motion = None if cyl_accel is None else (xp.asarray(cyl_accel, dtype=obs.dtype), lookahead[0])
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
@@ -454,18 +483,32 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     return concat([*points, walls, *frames, *after])
 
 
+def sees_whole_swarm(layout, obs) -> bool:
+    """Whether every drone's filter observes every other drone of its swarm (raw obs [..., n, D], the swarm on the
+    second-to-last axis): then each pair's two drones both hold a row for the other, which a split of the pair in
+    other parts than halves (``closing_split``) needs to add up to the pair condition. Where the filter sees only the
+    nearest K of a larger swarm, a drone can hold a row for a neighbour that does not hold one for it."""
+    return obs.ndim >= 2 and layout.num_neighbours >= obs.shape[-2] - 1
+
+
 def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_opening: float = 0.0,
-                gate_bar: float = 0.0, cyl_accel=None, braking: tuple | None = None) -> Rows:
+                gate_bar: float = 0.0, cyl_accel=None, braking: tuple | None = None,
+                whole_swarm: bool = False) -> Rows:
     """:func:`obs_rows` with the settings of ``safety`` (an ``aswarm.core.safety.SafetyFilterConfig``): the rows
     that both safety filters (JAX and numpy) solve and the tools that replay them read. ``cyl_accel`` and
-    ``braking`` as :func:`obs_rows` takes them, already chosen by the caller from ``safety``'s flags."""
+    ``braking`` as :func:`obs_rows` takes them, already chosen by the caller from ``safety``'s flags.
+    ``whole_swarm`` (:func:`sees_whole_swarm`, which the caller knows from the whole swarm's observation): the
+    neighbours split by closing speed where ``safety.closing_split`` > 0; otherwise, or without it, by
+    ``safety.neighbour_share``."""
     return obs_rows(layout, obs, gain, drone_radius=drone_radius, margin=safety.margin,
                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
                     brake=(safety.braking, safety.neighbour_braking, safety.gate_braking),
                     braking_gain=safety.neighbour_braking_gain,
-                    lookahead_accel=safety.lookahead_accel)
+                    lookahead_accel=safety.lookahead_accel,
+                    closing_split=((safety.closing_split, safety.closing_share_min)
+                                   if safety.closing_split > 0 and whole_swarm else None))
 
 
 def row_groups(layout) -> tuple[tuple[str, int], ...]:

@@ -98,6 +98,15 @@ class SafetyFilterConfig:
     moving_gain_max: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
+    # m/s: > 0 splits each pair of drones by how fast each one closes on the other (its velocity towards the other),
+    # softened by this speed, in place of neighbour_share (aswarm.core.barriers.closing_share): a drone that a
+    # follower closes on (a leader braking for a gate frame) keeps less of the pair's row, so the row no longer
+    # pushes it on into the frame, and the follower more. Both drones compute the same split from the velocities
+    # both see, so their rows still add up to the pair condition; applied only where the filter sees the whole
+    # swarm. Off by default: on the race it flew slower with more gate contacts (README, "Splitting a pair by
+    # closing speed"). 0 (runs and bundles from before): neighbour_share.
+    closing_split: float = 0.0
+    closing_share_min: float = 0.1  # the least share either drone of a pair keeps under closing_split
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
     # The QP: weight of the shared slack, budget of active-set steps, feasibility tolerance (m/s). 16 steps
     # left no problem unfinished in 20 000 dense random scenes where 12 left 4 (agents/cbf_filter.py).
@@ -122,7 +131,7 @@ class SafetyFilterConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
         for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
-                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near"):
+                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near", "closing_split"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
@@ -134,6 +143,8 @@ class SafetyFilterConfig:
                              "e.g. 0.207 with 0.039)")
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
+        if not 0 < self.closing_share_min <= 0.5:
+            raise ValueError(f"invalid safety_filter.closing_share_min={self.closing_share_min!r}: allowed: (0, 0.5]")
 
 
     def brakes(self, command_rate: tuple[float, float] | None) -> bool:
@@ -210,7 +221,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,
-              "escape_near": 0.3, "moving_gain_max": 0.0, **safety}
+              "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

@@ -475,7 +475,7 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
         accel = np.asarray(cyl_accel, np.float64)[..., None, :]
     rows = barriers.filter_rows(layout, obs, np.asarray(gain, np.float64), safety, drone_radius=drone_radius,
                                 gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=accel,
-                                braking=braking)
+                                braking=braking, whole_swarm=barriers.sees_whole_swarm(layout, obs))
     weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
                                                                           rows.b.shape[-1])
 
