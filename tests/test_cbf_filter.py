@@ -270,6 +270,12 @@ def test_closing_split_leaves_a_braking_leader_a_small_share_and_still_adds_up_t
     halves = neighbour_rows(p_lead, v_lead, p_follow[None], v_follow[None], np.ones(1, bool), gamma, drone_radius=r,
                             margin=margin)
     np.testing.assert_allclose(halves.b, [0.55])
+    # With the reference scaled to 0 (the classic form), the leader may brake to rest: n · u ≥ −h/2 = −0.05 in
+    # halves, −h/6 with its closing share.
+    np.testing.assert_allclose(neighbour_rows(p_lead, v_lead, p_follow[None], v_follow[None], np.ones(1, bool), gamma,
+                                              drone_radius=r, margin=margin, reference=0.0).b, [-0.05])
+    np.testing.assert_allclose(neighbour_rows(p_lead, v_lead, p_follow[None], v_follow[None], np.ones(1, bool), gamma,
+                                              drone_radius=r, margin=margin, share=w_lead, reference=0.0).b, [-0.1 / 6])
     # Both opening the gap, or sliding past each other: halves. A follower far faster: the clip's floor. Random
     # pairs' rows add up to the pair condition (the neighbour computes 1 - w), in JAX as in numpy.
     for v_i, v_k in ((v_lead, -v_follow), (np.array([0.0, 1.0, 0.0]), np.array([0.0, -2.0, 0.5]))):
@@ -287,6 +293,11 @@ def test_closing_split_leaves_a_braking_leader_a_small_share_and_still_adds_up_t
         ci = neighbour_rows(p_i, v_i, p_k[None], v_k[None], np.ones(1, bool), gamma, drone_radius=r,
                             share=np.asarray(w_i, float))
         ck = neighbour_rows(p_k, v_k, p_i[None], v_i[None], np.ones(1, bool), gamma, drone_radius=r, share=w_k)
+        np.testing.assert_allclose(ci.b + ck.b, -gamma * ci.h, atol=1e-5)
+        lam = rng.uniform()  # any reference scale both use
+        ci, ck = (neighbour_rows(p, v, q[None], u[None], np.ones(1, bool), gamma, drone_radius=r, share=w,
+                                 reference=lam) for p, v, q, u, w in ((p_i, v_i, p_k, v_k, np.asarray(w_i, float)),
+                                                                      (p_k, v_k, p_i, v_i, w_k)))
         np.testing.assert_allclose(ci.b + ck.b, -gamma * ci.h, atol=1e-5)
 
 
@@ -593,15 +604,17 @@ def test_obs_rows_are_one_computation_for_numpy_and_jax_and_both_filters_agree()
                                                                 now, rate).u)(
             jnp.asarray(close), jnp.asarray(cmd), jnp.asarray(gain), jnp.asarray(accel), jnp.asarray(applied))
     np.testing.assert_allclose(np.asarray(u_jax), res_nb.u, atol=1e-9)
-    # The neighbours split by closing speed in place of halves: the same in both, and it changes the commands.
+    # The neighbours split by closing speed in place of halves, and their reference velocity scaled to rest: each
+    # changes the commands, and both together are the same in JAX and numpy.
     split = dataclasses.replace(safety, closing_split=0.3)
-    res_split = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, split, 0.3, 0.05)
-    res_half = np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, safety, 0.3, 0.05)
-    assert np.abs(res_split.u - res_half.u).max() > 1e-3
+    rest = dataclasses.replace(split, neighbour_reference=0.0)
+    res_half, res_split, res_rest = (np_cbf.filter_from_obs(layout, close, cmd, gain, U_MAX, 0.06, sf, 0.3, 0.05)
+                                     for sf in (safety, split, rest))
+    assert np.abs(res_split.u - res_half.u).max() > 1e-3 and np.abs(res_rest.u - res_split.u).max() > 1e-3
     with jax.enable_x64(True):
-        u_jax = jax.jit(lambda o, c, g: filter_from_obs(layout, o, c, g, U_MAX, 0.06, split, 0.3, 0.05).u)(
+        u_jax = jax.jit(lambda o, c, g: filter_from_obs(layout, o, c, g, U_MAX, 0.06, rest, 0.3, 0.05).u)(
             jnp.asarray(close), jnp.asarray(cmd), jnp.asarray(gain))
-    np.testing.assert_allclose(np.asarray(u_jax), res_split.u, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(u_jax), res_rest.u, atol=1e-9)
     # Where the filter sees only some of the swarm (2 neighbours of 5 others: the same drones as two swarms of 6), a
     # pair may be held from one side only, so the split stays in halves.
     assert barriers.sees_whole_swarm(layout, close)
@@ -1070,6 +1083,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(closing_split=0.3, closing_share_min=0.6)
     with pytest.raises(ValueError, match=r"invalid safety_filter.closing_split=-0.3: allowed: >= 0"):
         SafetyFilterConfig(closing_split=-0.3)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.neighbour_reference=1.5: allowed: \[0, 1\]"):
+        SafetyFilterConfig(neighbour_reference=1.5)
     with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"):
         SafetyFilterConfig(lookahead_z=-0.1)
     with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
@@ -1087,6 +1102,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     # The moving cylinders' gain cap is a gain: fitted with the others; off (0) in bundles from before it.
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
+    assert from_manifest(old).neighbour_reference == 1.0
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):

@@ -167,7 +167,7 @@ def cylinder_braking_rows(pos, cmd, center, radius, vel, present, gamma, *, acce
 
 
 def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
-                   share=0.5) -> Rows:
+                   share=0.5, reference: float = 1.0) -> Rows:
     """Rows for the other drones (spheres).
 
     pos, vel [..., 3] (this drone); nbr_pos, nbr_vel [..., K, 3]; present [..., K]; gamma [..., K] or
@@ -181,13 +181,17 @@ def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: 
     without knowing the other's command. The reference (1 − w) v + w v_k (an ORCA-style reciprocal
     split) makes each drone take its share of the change from the current relative velocity; with
     v = v_k = 0 it reduces to the classic n · u ≥ −γ h / 2. share = 1 treats the neighbour as a
-    non-cooperative moving obstacle.
+    non-cooperative moving obstacle. ``reference`` λ scales that reference, λ ((1 − w) v + w v_k): the rows add up
+    for any λ both drones use; 0 is the classic form at any velocity, where a drone may always brake to rest along
+    n and its neighbour's speed towards it is bounded by its own share of γ h alone.
     """
     xp = geometry.namespace(pos, nbr_pos)
     dist, n = unit(pos[..., None, :] - nbr_pos)  # [..., K], [..., K, 3]
     h = dist - (2.0 * drone_radius + margin)
     share = xp.asarray(share)
     ref_vel = (1.0 - share)[..., None] * vel[..., None, :] + share[..., None] * nbr_vel
+    if reference != 1.0:  # (static: the default traces as before)
+        ref_vel = reference * ref_vel
     b = xp.sum(n * ref_vel, axis=-1) - share * gamma * h
     return Rows(n, b, present, h)
 
@@ -320,7 +324,7 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 
 
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
-                   drone_radius: float, margin: float, floor_z: float, neighbour_share,
+                   drone_radius: float, margin: float, floor_z: float, neighbour_share, neighbour_reference=1.0,
                    cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
                    nbr_braking: tuple | None = None, moving_gain_max: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
@@ -354,7 +358,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
                                     lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=margin)
     parts = [cyl,
              neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
-                            share=neighbour_share),
+                            share=neighbour_share, reference=neighbour_reference),
              floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin)]
     if nbr_braking is not None:
         cmd, decel, dt, g_brake = nbr_braking
@@ -369,7 +373,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
              moving_gain_max: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0,
-             closing_split: tuple[float, float] | None = None) -> Rows:
+             closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -414,7 +418,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     gain can be far above the velocity rows'.
 
     ``closing_split`` = (soft, least): the neighbours' rows split each pair by :func:`closing_share` (taken at the
-    look-ahead points) in place of ``neighbour_share``; None: ``neighbour_share``.
+    look-ahead points) in place of ``neighbour_share``; None: ``neighbour_share``. ``neighbour_reference``: the
+    neighbours' rows' reference velocity scale (:func:`neighbour_rows`' ``reference``).
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -465,7 +470,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     motion = None if cyl_accel is None else (xp.asarray(cyl_accel, dtype=obs.dtype), lookahead[0])
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
-                            neighbour_share=neighbour_share, cyl_motion=motion,
+                            neighbour_share=neighbour_share, neighbour_reference=neighbour_reference,
+                            cyl_motion=motion,
                             cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
                             nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
                             moving_gain_max=moving_gain_max)
@@ -508,7 +514,8 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     braking_gain=safety.neighbour_braking_gain,
                     lookahead_accel=safety.lookahead_accel,
                     closing_split=((safety.closing_split, safety.closing_share_min)
-                                   if safety.closing_split > 0 and whole_swarm else None))
+                                   if safety.closing_split > 0 and whole_swarm else None),
+                    neighbour_reference=safety.neighbour_reference)
 
 
 def row_groups(layout) -> tuple[tuple[str, int], ...]:

@@ -107,6 +107,12 @@ class SafetyFilterConfig:
     # closing speed"). 0 (runs and bundles from before): neighbour_share.
     closing_split: float = 0.0
     closing_share_min: float = 0.1  # the least share either drone of a pair keeps under closing_split
+    # Scale λ of the neighbours' rows' reference velocity (aswarm.core.barriers.neighbour_rows): 1 takes each pair's
+    # current velocities (ORCA-style: a drone a follower closes on is asked to move on); 0 the classic form, where a
+    # drone may always brake to rest along the pair's normal and the one closing on it takes the gap alone. Any λ
+    # keeps the pair's rows adding up. 0 flew the shipped race policy with no collision and no infeasible QP, but
+    # stalled its column at 8 drones (README, "The classic reference"). Runs and bundles from before read back 1.
+    neighbour_reference: float = 1.0
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
     # The QP: weight of the shared slack, budget of active-set steps, feasibility tolerance (m/s). 16 steps
     # left no problem unfinished in 20 000 dense random scenes where 12 left 4 (agents/cbf_filter.py).
@@ -143,6 +149,8 @@ class SafetyFilterConfig:
                              "e.g. 0.207 with 0.039)")
         if not 0 < self.neighbour_share <= 1:
             raise ValueError(f"invalid safety_filter.neighbour_share={self.neighbour_share!r}: allowed: (0, 1]")
+        if not 0 <= self.neighbour_reference <= 1:
+            raise ValueError(f"invalid safety_filter.neighbour_reference={self.neighbour_reference!r}: allowed: [0, 1]")
         if not 0 < self.closing_share_min <= 0.5:
             raise ValueError(f"invalid safety_filter.closing_share_min={self.closing_share_min!r}: allowed: (0, 0.5]")
 
@@ -221,7 +229,8 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,
-              "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1, **safety}
+              "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1,
+              "neighbour_reference": 1.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "
