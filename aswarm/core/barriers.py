@@ -183,7 +183,7 @@ def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: 
     v = v_k = 0 it reduces to the classic n · u ≥ −γ h / 2. share = 1 treats the neighbour as a
     non-cooperative moving obstacle. ``reference`` λ scales that reference, λ ((1 − w) v + w v_k): the rows add up
     for any λ both drones use; 0 is the classic form at any velocity, where a drone may always brake to rest along
-    n and its neighbour's speed towards it is bounded by its own share of γ h alone.
+    n and closes on the neighbour at no more than its share of γ h, whatever the neighbour's speed away.
     """
     xp = geometry.namespace(pos, nbr_pos)
     dist, n = unit(pos[..., None, :] - nbr_pos)  # [..., K], [..., K, 3]

@@ -109,9 +109,10 @@ class SafetyFilterConfig:
     closing_share_min: float = 0.1  # the least share either drone of a pair keeps under closing_split
     # Scale λ of the neighbours' rows' reference velocity (aswarm.core.barriers.neighbour_rows): 1 takes each pair's
     # current velocities (ORCA-style: a drone a follower closes on is asked to move on); 0 the classic form, where a
-    # drone may always brake to rest along the pair's normal and the one closing on it takes the gap alone. Any λ
-    # keeps the pair's rows adding up. 0 flew the shipped race policy with no collision and no infeasible QP, but
-    # stalled its column at 8 drones (README, "The classic reference"). Runs and bundles from before read back 1.
+    # drone may always brake to rest along the pair's normal and each closes on the other at no more than its share
+    # of γ h, whatever the other's speed away. Any λ keeps the pair's rows adding up. 0 flew the shipped race
+    # policy with no collision and no infeasible QP, but stalled its column at 8 drones (README, "The classic
+    # reference"). Runs and bundles from before read back 1.
     neighbour_reference: float = 1.0
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
     # The QP: weight of the shared slack, budget of active-set steps, feasibility tolerance (m/s). 16 steps
