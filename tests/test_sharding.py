@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -99,9 +100,9 @@ def _assert_same(a: Path, b: Path) -> None:
         _assert_same_trial(a / "trials" / t, b / "trials" / t, f"{b.name}/{t}")
 
 
-class OneDevice:
-    def __init__(self, out: Path, results: dict):
-        self.out, self.results = out, results
+class OneDevice(NamedTuple):
+    out: Path  # the sweep's folder
+    results: dict  # what sweep.run returned on completing it
 
 
 @pytest.fixture(scope="module")
