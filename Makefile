@@ -6,6 +6,10 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= race
 ARGS ?=
 
+# Python writes the bytecode of what it imports (some shells set PYTHONDONTWRITEBYTECODE): without it every process
+# compiles jax and its dependencies from source again, some 5 s each, and the tests start a dozen processes.
+unexport PYTHONDONTWRITEBYTECODE
+
 .PHONY: install train test bench bench-train bench-flight paper-table safety-matrix lint clean
 
 # --no-compile: byte-compiling every installed module costs half the install (29 s against 58 s here); Python

@@ -301,6 +301,44 @@ def test_closing_split_leaves_a_braking_leader_a_small_share_and_still_adds_up_t
         np.testing.assert_allclose(ci.b + ck.b, -gamma * ci.h, atol=1e-5)
 
 
+def test_the_reference_released_by_closing_speed_lets_a_leader_brake_and_a_column_keep_pace():
+    """The leader and follower above (gap h = 0.1 m, γ = 1 /s, halves) close at c = n · (v_f − v_l) = 0.8 m/s. With
+    release r = 1.6 m/s the reference scale is 1 − 0.8/1.6 = 1/2: the leader's row asks n · u ≥ ½ (0.2 + 1)/2 − h/2
+    = 0.25 m/s (0.55 at scale 1), the follower's −n · u ≥ −0.30 − 0.05, and the two add up to −γh. At r ≤ 0.8 the
+    leader may brake to rest (−h/2, the classic form). A column at one speed (c = 0) keeps the full reference: both
+    at 1 m/s, the follower may close at 1 − h/2... and the leader is asked no more than it flies."""
+    r, gamma, h = 0.05, 1.0, 0.1
+    p_lead, p_follow = np.array([2 * r + h, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])
+    v_lead, v_follow = np.array([0.2, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    one = np.ones(1, bool)
+
+    def rows(release, v_l=v_lead, v_f=v_follow, xp=np):
+        lead = neighbour_rows(xp.asarray(p_lead), xp.asarray(v_l), xp.asarray(p_follow)[None], xp.asarray(v_f)[None],
+                              one, gamma, drone_radius=r, release=release)
+        follow = neighbour_rows(p_follow, v_f, p_lead[None], v_l[None], one, gamma, drone_radius=r, release=release)
+        return np.asarray(lead.b), follow.b
+
+    lead, follow = rows(1.6)
+    np.testing.assert_allclose(lead, [0.25], atol=1e-6)
+    np.testing.assert_allclose(follow, [-0.35], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(rows(1.6, xp=jnp)[0]), lead, atol=1e-6)  # JAX as numpy
+    for release in (0.8, 0.5):
+        np.testing.assert_allclose(rows(release)[0], [-h / 2], atol=1e-6)
+    np.testing.assert_allclose(rows(0.0)[0], [0.55], atol=1e-6)  # off: the current velocities
+    column, follower = rows(1.6, v_l=v_follow)
+    np.testing.assert_allclose(column, [1.0 - h / 2], atol=1e-6)
+    np.testing.assert_allclose(follower, [-1.0 - h / 2], atol=1e-6)
+    rng = np.random.default_rng(4)  # random pairs, any scale and release both use: the rows add up
+    for _ in range(20):
+        p_i, p_k, v_i, v_k = rng.normal(size=(4, 3))
+        lam, release, w = rng.uniform(), rng.uniform(0.1, 2.0), rng.uniform(0.1, 0.9)
+        ci = neighbour_rows(p_i, v_i, p_k[None], v_k[None], one, gamma, drone_radius=r, share=w, reference=lam,
+                            release=release)
+        ck = neighbour_rows(p_k, v_k, p_i[None], v_i[None], one, gamma, drone_radius=r, share=1 - w, reference=lam,
+                            release=release)
+        np.testing.assert_allclose(ci.b + ck.b, -gamma * ci.h, atol=1e-5)
+
+
 def test_floor_row():
     con = floor_row(jnp.array([0.0, 0.0, 0.5]), jnp.array([1.0]), z_min=0.1)
     np.testing.assert_allclose(con.h, [0.4], atol=1e-6)
@@ -1058,7 +1096,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
            "gate_half_opening": 0.3, "gate_bar": 0.05, "floor_z": 0.0, "neighbour_share": 0.5, "rho": 1000000.0,
            "max_iter": 16, "tol": 1e-06}
     assert from_manifest(old) == SafetyFilterConfig(fit_to_drone=False, fit_lookahead=False, lookahead_scale=1.0,
-                                                    margin=0.1, hazard_accel=False, static_slack=1.0)
+                                                    margin=0.1, hazard_accel=False, static_slack=1.0,
+                                                    neighbour_release=0.0)
     with pytest.raises(ValueError, match="missing rho"):
         from_manifest({k: v for k, v in old.items() if k != "rho"})
     # The flat fields of runs written before it (the shipped pretrained config.json has them).
@@ -1085,6 +1124,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         SafetyFilterConfig(closing_split=-0.3)
     with pytest.raises(ValueError, match=r"invalid safety_filter.neighbour_reference=1.5: allowed: \[0, 1\]"):
         SafetyFilterConfig(neighbour_reference=1.5)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.neighbour_release=-1: allowed: >= 0"):
+        SafetyFilterConfig(neighbour_release=-1)
     with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"):
         SafetyFilterConfig(lookahead_z=-0.1)
     with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
@@ -1102,7 +1143,14 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     # The moving cylinders' gain cap is a gain: fitted with the others; off (0) in bundles from before it.
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
-    assert from_manifest(old).neighbour_reference == 1.0
+    assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
+    # Runs from before the release read it back as 0 (the shipped policies were measured so); new ones take 0.5.
+    from aswarm.analysis import evaluate
+    from aswarm.training import run_config
+
+    assert SafetyFilterConfig().neighbour_release == 0.5
+    for name in evaluate.shipped():
+        assert run_config.read(evaluate.run_folder(name)).safety_filter.neighbour_release == 0.0, name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
@@ -1237,7 +1285,7 @@ def test_the_deadlock_escape_changes_nothing_where_no_drone_is_stuck():
             jnp.asarray(scene_obs), jnp.asarray(cmds), jnp.asarray(scene_gain))
     np.testing.assert_array_equal(np.asarray(jres.escaped), res.escaped)
     np.testing.assert_allclose(np.asarray(jres.u), res.u, atol=1e-9)
-    rows = barriers.obs_rows(scene_layout, scene_obs, scene_gain, **kw)
+    rows = barriers.obs_rows(scene_layout, scene_obs, scene_gain, **kw, neighbour_release=safety.neighbour_release)
     nrm = np.linalg.norm(rows.A, axis=-1)
     gap = (np.einsum("...mk,...k->...m", rows.A, res.u) - rows.b) / np.maximum(nrm, 1e-9)
     worst = np.where(rows.mask, -gap, 0.0).max(-1)

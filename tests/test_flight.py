@@ -108,9 +108,11 @@ def race(tmp_path_factory):
     # runtime against simulator) does not depend on the drone (SITL on the firmware drone: experiments/robustness.py).
     overrides = (("episode_seconds", EPISODE_S), ("gate_half_opening", HALF_OPENING),
                  *((k, v) for k, v in LEGACY_DRONE.items()))
-    # The filter margin the hand-set actor was tuned with (the default is 0.13 since issue #12).
+    # The filter margin the hand-set actor was tuned with (the default is 0.13 since issue #12), and the neighbours'
+    # reference (released by closing speed since session 41, the filter holds back this actor's four drones, which
+    # converge on the same gate ignoring each other, to 4 % of the track in 4 s, under the check below).
     config = TrainConfig(scenario="race", method="attention_cbf", env_overrides=overrides,
-                         safety_filter=SafetyFilterConfig(margin=0.1))
+                         safety_filter=SafetyFilterConfig(margin=0.1, neighbour_release=0.0))
     sim = sitl.simulator(envs.make("race", **dict(overrides)).config, B)
     env = sim.env
     agent = Agent.build(config, env)

@@ -167,7 +167,7 @@ def cylinder_braking_rows(pos, cmd, center, radius, vel, present, gamma, *, acce
 
 
 def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: float, margin: float = 0.0,
-                   share=0.5, reference: float = 1.0) -> Rows:
+                   share=0.5, reference: float = 1.0, release: float = 0.0) -> Rows:
     """Rows for the other drones (spheres).
 
     pos, vel [..., 3] (this drone); nbr_pos, nbr_vel [..., K, 3]; present [..., K]; gamma [..., K] or
@@ -184,13 +184,21 @@ def neighbour_rows(pos, vel, nbr_pos, nbr_vel, present, gamma, *, drone_radius: 
     non-cooperative moving obstacle. ``reference`` λ scales that reference, λ ((1 − w) v + w v_k): the rows add up
     for any λ both drones use; 0 is the classic form at any velocity, where a drone may always brake to rest along
     n and closes on the neighbour at no more than its share of γ h, whatever the neighbour's speed away.
+    ``release`` r > 0 (m/s) lowers that scale with how fast the pair closes, c = n · (v_k − v) (the same for both
+    drones), to λ max(0, 1 − c / r): a column flying at one speed (c = 0) keeps the current velocities as reference,
+    so a follower may keep pace, while a pair that closes fast (a leader braking for a gate frame) falls to the
+    classic form, where the leader may brake and the follower must. Both drones compute the same scale, so their
+    rows still add up.
     """
     xp = geometry.namespace(pos, nbr_pos)
     dist, n = unit(pos[..., None, :] - nbr_pos)  # [..., K], [..., K, 3]
     h = dist - (2.0 * drone_radius + margin)
     share = xp.asarray(share)
     ref_vel = (1.0 - share)[..., None] * vel[..., None, :] + share[..., None] * nbr_vel
-    if reference != 1.0:  # (static: the default traces as before)
+    if release > 0:  # (static, as the reference below)
+        closing = xp.sum(n * (nbr_vel - vel[..., None, :]), axis=-1)
+        ref_vel = (reference * xp.clip(1.0 - closing / release, 0.0, 1.0))[..., None] * ref_vel
+    elif reference != 1.0:  # (static: the default traces as before)
         ref_vel = reference * ref_vel
     b = xp.sum(n * ref_vel, axis=-1) - share * gamma * h
     return Rows(n, b, present, h)
@@ -325,7 +333,7 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
                    drone_radius: float, margin: float, floor_z: float, neighbour_share, neighbour_reference=1.0,
-                   cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
+                   neighbour_release: float = 0.0, cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
                    nbr_braking: tuple | None = None, moving_gain_max: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
     ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
@@ -358,7 +366,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
                                     lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=margin)
     parts = [cyl,
              neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
-                            share=neighbour_share, reference=neighbour_reference),
+                            share=neighbour_share, reference=neighbour_reference, release=neighbour_release),
              floor_row(pos, g_floor, z_min=floor_z + drone_radius + margin)]
     if nbr_braking is not None:
         cmd, decel, dt, g_brake = nbr_braking
@@ -373,7 +381,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
              moving_gain_max: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0,
-             closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0) -> Rows:
+             closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0,
+             neighbour_release: float = 0.0) -> Rows:
     """Every drone's rows from what it observes: raw obs [..., n, D] -> A [..., n, m, 3], b, mask, h [..., n, m].
 
     Rows ``[cylinders M | neighbours K | floor 1 | walls 5 | current gate 5 | previous gate 5]``
@@ -418,8 +427,9 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     gain can be far above the velocity rows'.
 
     ``closing_split`` = (soft, least): the neighbours' rows split each pair by :func:`closing_share` (taken at the
-    look-ahead points) in place of ``neighbour_share``; None: ``neighbour_share``. ``neighbour_reference``: the
-    neighbours' rows' reference velocity scale (:func:`neighbour_rows`' ``reference``).
+    look-ahead points) in place of ``neighbour_share``; None: ``neighbour_share``. ``neighbour_reference``,
+    ``neighbour_release``: the neighbours' rows' reference velocity scale and the closing speed that lowers it
+    (:func:`neighbour_rows`' ``reference`` and ``release``).
     """
     xp = geometry.namespace(obs)
     numpy = isinstance(obs, np.ndarray)
@@ -471,7 +481,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     points = _barrier_parts(at, vel, rel, cyl_radius, cyl_vel, CYL.present(cyl), nbr_pos, nbr_vel,
                             NBR.present(nbr), gamma, drone_radius=drone_radius, margin=margin, floor_z=floor_z,
                             neighbour_share=neighbour_share, neighbour_reference=neighbour_reference,
-                            cyl_motion=motion,
+                            neighbour_release=neighbour_release, cyl_motion=motion,
                             cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
                             nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
                             moving_gain_max=moving_gain_max)
@@ -515,7 +525,8 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     lookahead_accel=safety.lookahead_accel,
                     closing_split=((safety.closing_split, safety.closing_share_min)
                                    if safety.closing_split > 0 and whole_swarm else None),
-                    neighbour_reference=safety.neighbour_reference)
+                    neighbour_reference=safety.neighbour_reference,
+                    neighbour_release=safety.neighbour_release)
 
 
 def row_groups(layout) -> tuple[tuple[str, int], ...]:

@@ -114,6 +114,13 @@ class SafetyFilterConfig:
     # policy with no collision and no infeasible QP, but stalled its column at 8 drones (README, "The classic
     # reference"). Runs and bundles from before read back 1.
     neighbour_reference: float = 1.0
+    # m/s: > 0 lowers that scale with how fast each pair closes, to neighbour_reference · max(0, 1 − c / this) at
+    # closing speed c (the same for both drones, so the rows still add up): a column at one speed keeps the current
+    # velocities as reference (a follower may keep pace, where the classic form stalled the 8-drone race), a pair
+    # closing fast the classic form (a leader braking for a gate frame may brake, its follower must). 0.5 flew the
+    # shipped race policy with no collision at 4 and 8 drones (README, "Releasing the reference as a pair closes").
+    # 0 (runs and bundles from before, which read back 0): the scale stays neighbour_reference.
+    neighbour_release: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
     # The QP: weight of the shared slack, budget of active-set steps, feasibility tolerance (m/s). 16 steps
     # left no problem unfinished in 20 000 dense random scenes where 12 left 4 (agents/cbf_filter.py).
@@ -138,7 +145,8 @@ class SafetyFilterConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
         for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
-                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near", "closing_split"):
+                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near", "closing_split",
+                     "neighbour_release"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
@@ -231,7 +239,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,
               "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1,
-              "neighbour_reference": 1.0, **safety}
+              "neighbour_reference": 1.0, "neighbour_release": 0.0, **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

@@ -68,17 +68,19 @@ def _upgrade_train(train: dict) -> dict:
     # Runs from before SafetyFilterConfig.fit_to_drone were trained with the gains they store, unfitted; runs from
     # before fit_lookahead had their gains fitted, not the look-aheads; runs from before lookahead_scale set the
     # look-aheads to the lags themselves; runs from before hazard_accel held moving cylinders to their velocity only,
-    # and spread the filter's slack evenly (static_slack 1); runs from before braking had velocity rows only.
+    # and spread the filter's slack evenly (static_slack 1); runs from before braking had velocity rows only; runs from
+    # before neighbour_release kept the neighbours' reference whatever the closing speed.
     sf = train.get("safety_filter")
     if sf is None:
         train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "hazard_accel": False,
-                                  "static_slack": 1.0, "braking": False}
+                                  "static_slack": 1.0, "braking": False, "neighbour_release": 0.0}
     elif isinstance(sf, dict):
         train["safety_filter"] = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_scale": 1.0,
-                                  "hazard_accel": False, "static_slack": 1.0, "braking": False, **sf}
+                                  "hazard_accel": False, "static_slack": 1.0, "braking": False,
+                                  "neighbour_release": 0.0, **sf}
     elif isinstance(sf, safety.SafetyFilterConfig):  # nest_legacy's, from flat fields: an old run
         train["safety_filter"] = dataclasses.replace(sf, fit_to_drone=False, fit_lookahead=False, hazard_accel=False,
-                                                     static_slack=1.0, braking=False)
+                                                     static_slack=1.0, braking=False, neighbour_release=0.0)
     return train
 
 
