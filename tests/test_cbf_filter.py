@@ -306,7 +306,8 @@ def test_the_reference_released_by_closing_speed_lets_a_leader_brake_and_a_colum
     release r = 1.6 m/s the reference scale is 1 − 0.8/1.6 = 1/2: the leader's row asks n · u ≥ ½ (0.2 + 1)/2 − h/2
     = 0.25 m/s (0.55 at scale 1), the follower's −n · u ≥ −0.30 − 0.05, and the two add up to −γh. At r ≤ 0.8 the
     leader may brake to rest (−h/2, the classic form). A column at one speed (c = 0) keeps the full reference: both
-    at 1 m/s, the follower may close at 1 − h/2... and the leader is asked no more than it flies."""
+    at 1 m/s, the leader's row asks 1 − h/2 (not more than it flies) and the follower's lets it keep pace (u_x ≤
+    1 + h/2)."""
     r, gamma, h = 0.05, 1.0, 0.1
     p_lead, p_follow = np.array([2 * r + h, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])
     v_lead, v_follow = np.array([0.2, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
@@ -1114,24 +1115,19 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
                                                                                            "gain_min": 0.5}
     with pytest.raises(ValueError, match="both flat and nested"):
         nest_legacy({"gain_min": 0.5, "safety_filter": {"gain_min": 0.4}})
-    with pytest.raises(ValueError, match="need 0 < min < max"):
-        SafetyFilterConfig(gain_min=3.0)
-    with pytest.raises(ValueError, match="invalid safety_filter.neighbour_share"):
-        SafetyFilterConfig(neighbour_share=0.0)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.closing_share_min=0.6: allowed: \(0, 0.5\]"):
-        SafetyFilterConfig(closing_split=0.3, closing_share_min=0.6)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.closing_split=-0.3: allowed: >= 0"):
-        SafetyFilterConfig(closing_split=-0.3)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.neighbour_reference=1.5: allowed: \[0, 1\]"):
-        SafetyFilterConfig(neighbour_reference=1.5)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.neighbour_release=-1: allowed: >= 0"):
-        SafetyFilterConfig(neighbour_release=-1)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"):
-        SafetyFilterConfig(lookahead_z=-0.1)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.fit_lookahead=1: allowed: true or false"):
-        SafetyFilterConfig(fit_lookahead=1)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.lookahead_scale=-1.0: allowed: >= 0"):
-        SafetyFilterConfig(lookahead_scale=-1.0)
+    for bad, message in (
+            ({"gain_min": 3.0}, "need 0 < min < max"),
+            ({"neighbour_share": 0.0}, "invalid safety_filter.neighbour_share"),
+            ({"closing_split": 0.3, "closing_share_min": 0.6},
+             r"invalid safety_filter.closing_share_min=0.6: allowed: \(0, 0.5\]"),
+            ({"closing_split": -0.3}, r"invalid safety_filter.closing_split=-0.3: allowed: >= 0"),
+            ({"neighbour_reference": 1.5}, r"invalid safety_filter.neighbour_reference=1.5: allowed: \[0, 1\]"),
+            ({"neighbour_release": -1}, r"invalid safety_filter.neighbour_release=-1: allowed: >= 0"),
+            ({"lookahead_z": -0.1}, r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"),
+            ({"fit_lookahead": 1}, r"invalid safety_filter.fit_lookahead=1: allowed: true or false"),
+            ({"lookahead_scale": -1.0}, r"invalid safety_filter.lookahead_scale=-1.0: allowed: >= 0")):
+        with pytest.raises(ValueError, match=message):
+            SafetyFilterConfig(**bad)
     # Fitted to a drone: gains scaled to its horizontal lag, look-aheads set to 0.9 of its lags (the lags
     # themselves as runs before the scale; or left alone).
     fitted = SafetyFilterConfig().fitted(0.5, 0.2)
