@@ -143,7 +143,7 @@ def test_mellinger_drone_hovers_and_tracks_velocity_steps(mellinger_drone):
 
 def test_randomised_mellinger_gains_differ_across_worlds():
     env = envs.make("hover", controller="mellinger")
-    states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 4))
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 4))
     kp = np.asarray(states.onboard.params.mellinger.kp_xy)
     assert len(set(kp.tolist())) == 4 and np.all((kp >= 0.4 * 0.9) & (kp <= 0.4 * 1.1))
     # One factor per world scales every gain: kR / kp stays the firmware's 70000 / 0.4.
