@@ -1,6 +1,7 @@
 """Environment parameters as data: one compiled program for many values, equal to envs built with them."""
 
 import dataclasses
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -65,7 +66,7 @@ def test_one_program_vmapped_over_params_matches_an_env_per_config(swept):
     env, keys, batch, qpos, mass = swept
     # Each world keeps its own params through the auto-reset.
     np.testing.assert_array_equal(mass, np.broadcast_to(np.asarray(batch.cf.mass)[:, None], mass.shape))
-    for i, j in ((0, 1), (0, 2), (1, 2)):  # no world flies another's params
+    for i, j in itertools.combinations(range(len(WORLDS)), 2):  # no world flies another's params
         assert np.abs(qpos[i] - qpos[j]).max() > 1e-3, f"worlds {i} and {j} flew alike: {WORLDS[i]}, {WORLDS[j]}"
     # The last world, which changes every kind of field, against its config's own program (each such program is a
     # compile of its own: world 1, a mass alone, is covered by its mass above and by its own flight).

@@ -118,7 +118,8 @@ class SafetyFilterConfig:
     # closing speed c (the same for both drones, so the rows still add up): a column at one speed keeps the current
     # velocities as reference (a follower may keep pace, where the classic form stalled the 8-drone race), a pair
     # closing fast the classic form (a leader braking for a gate frame may brake, its follower must). 0.5 flew the
-    # shipped race policy with no collision at 4 and 8 drones (README, "Releasing the reference as a pair closes").
+    # shipped race policy with no collision over 10,000 race episodes and 1 in 2,000 at 8 drones (README, "Releasing
+    # the reference as a pair closes").
     # 0 (runs and bundles from before, which read back 0): the scale stays neighbour_reference.
     neighbour_release: float = 0.5
     floor_z: float = 0.0  # m, the floor's height (the floor barrier keeps floor_z + drone radius + margin)
