@@ -16,6 +16,11 @@ timed-out race lost its time (issue #15's main command)
 
     python experiments/unfinished_drones.py --checkpoint runs/race --failed-of 1000 --seed 10000
 
+and ``--only 6,42`` replays just those episodes of the split (the failures such a run listed), legs included.
+On a track each episode also says how often its drones crossed their gate's plane beside the opening (which does
+not count: the drone must turn back through it), and each unfinished drone on which side of its gate's plane it
+ended.
+
 A replay flies alone, and XLA fuses a lone episode's arithmetic differently from a batch's, so after a few
 hundred steps it can end otherwise (a time-out of the batch may finish alone, late): its legs say where the
 episode was slow, not that it fails every time.
@@ -60,6 +65,23 @@ def legs(target: np.ndarray, time: np.ndarray, open_end: np.ndarray | None = Non
     return out
 
 
+def gate_sides(pos: np.ndarray, target: np.ndarray, gate_pos: np.ndarray, gate_yaw: np.ndarray,
+               half_opening: float) -> tuple[np.ndarray, np.ndarray]:
+    """(passed beside [n], side [T, n]) on a track: how often each drone crossed its current gate's plane forwards
+    outside the opening (which the race does not count: the drone must come back through it), and its signed
+    distance along that gate's direction of passage at every instant (> 0: past the plane without having passed;
+    NaN once every gate is passed). pos [T, n, 3], target [T, n]; gate_pos [G, 3], gate_yaw [G]."""
+    from aswarm.core import geometry as geo
+
+    g = len(gate_pos)
+    k = np.minimum(target, g - 1)
+    normal, centre = geo.horizontal(np.asarray(gate_yaw))[k], np.asarray(gate_pos)[k]  # [T, n, 3]
+    side = np.where(target < g, np.sum((pos - centre) * normal, axis=-1), np.nan)
+    forward = (side[:-1] < 0) & (side[1:] >= 0) & (target[1:] == target[:-1])  # crossed, and not counted
+    inside = geo.gate_crossed(pos[:-1], pos[1:], centre[:-1], normal[:-1], half_opening)
+    return np.sum(forward & ~inside, axis=0), side
+
+
 def failed_episodes(agent, restored, episodes: int, key) -> np.ndarray:
     """Indices of the episodes that did not succeed when ``episodes`` of ``key`` fly as one batch (``aswarm eval``)."""
     from aswarm.analysis import evaluate
@@ -80,11 +102,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE")
     ap.add_argument("--failed-of", type=int, default=0, metavar="N",
                     help="fly N episodes as one batch and replay the failed ones (instead of the first --episodes)")
+    ap.add_argument("--only", default=None, metavar="I,J,...",
+                    help="replay only these episodes of the --episodes (or --failed-of) split, e.g. the failures "
+                         "another run listed")
     args = ap.parse_args(argv)
+    try:
+        only = None if args.only is None else [int(i) for i in args.only.split(",")]
+    except ValueError:
+        ap.error(f"invalid --only={args.only!r}: allowed: episode numbers separated by commas, such as 6,42")
     if args.episodes < 1:
         ap.error(f"invalid --episodes {args.episodes}: must be >= 1")
     if args.failed_of < 0:
         ap.error(f"invalid --failed-of {args.failed_of}: must be >= 1 (or 0: replay the first --episodes)")
+    count = args.failed_of or args.episodes
+    if only is not None and not all(0 <= i < count for i in only):
+        ap.error(f"invalid --only={args.only!r}: allowed: episode numbers from 0 to {count - 1}")
 
     import jax
 
@@ -92,11 +124,14 @@ def main(argv: list[str] | None = None) -> int:
     from aswarm.envs.scenarios import CROSSING_LANES
 
     _, agent, restored = evaluate.load_agent(args.checkpoint, args.scenario, args.env)
-    count = args.failed_of or args.episodes
     key = jax.random.PRNGKey(args.seed)
     keys = jax.random.split(key, count)
-    chosen = failed_episodes(agent, restored, count, key) if args.failed_of else np.arange(count)
+    if only is not None:
+        chosen = np.asarray(only)
+    else:
+        chosen = failed_episodes(agent, restored, count, key) if args.failed_of else np.arange(count)
     by_line: dict[int, int] = {}
+    far_side = 0
     slowest_at: dict[int, int] = {}
     for i in chosen:
         ep = plots.record_episode(agent, restored["params"], restored["obs_norm"], keys[i])
@@ -115,14 +150,23 @@ def main(argv: list[str] | None = None) -> int:
                           + f"; slowest to waypoint {worst[0]}")
         if len(hit):  # an episode ends at its first collision: the others were cut short, not stuck
             continue
+        track = ep.kind == "track" and len(ep.layout.gate_pos) > 0
+        if track:
+            beside, side = gate_sides(ep.pos, ep.target, ep.layout.gate_pos, ep.layout.gate_yaw, ep.gate_half_opening)
+            print(f"  passed beside their gate (not counted, so turned back): {int(beside.sum())} times, by drones "
+                  f"{np.flatnonzero(beside).tolist()}")
         for r in rows:
             line = r["drone"] // CROSSING_LANES
             by_line[line] = by_line.get(line, 0) + 1
+            where = (f", {side[-1, r['drone']]:+.2f} m from gate {int(ep.target[-1, r['drone']])}'s plane "
+                     "(+: past it, not passed)" if track else "")
+            far_side += int(track and side[-1, r["drone"]] > 0)
             print(f"  drone {r['drone']} (line {line}): at {np.round(r['pos'], 2)}, goal {np.round(r['goal'], 2)}, "
-                  f"{r['gap']:.2f} m short, nearest flying drone {r['nearest']:.2f} m, moved {r['moved']:.2f} m "
-                  f"in the last {STILL_WINDOW_S:.0f} s")
+                  f"{r['gap']:.2f} m short{where}, nearest flying drone {r['nearest']:.2f} m, moved "
+                  f"{r['moved']:.2f} m in the last {STILL_WINDOW_S:.0f} s")
     print("unfinished drones of the episodes without a collision, by start line (0 = front): "
           + (", ".join(f"line {k}: {v}" for k, v in sorted(by_line.items())) or "none"))
+    print(f"of those, past their gate's plane without having passed it: {far_side}")
     if args.failed_of:
         print("each drone's slowest leg, by the waypoint it led to: "
               + (", ".join(f"{k}: {v}" for k, v in sorted(slowest_at.items())) or "none"))

@@ -222,3 +222,19 @@ def test_cli_plot_curves_draws_runs_on_the_same_axes(tmp_path, capsys):
     assert cli.main(["plot", "--curves", runs[0], str(tmp_path), "--out", str(both)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"aswarm plot: error: invalid --curves {tmp_path}: no metrics.jsonl there; allowed: run folders"
+
+
+@pytest.mark.parametrize("drones", [2, 16])
+def test_a_swarms_legend_goes_below_the_views(drones):
+    from matplotlib.figure import Figure
+
+    fig = Figure(layout="constrained")
+    ax = fig.add_subplot()
+    for i in range(drones):
+        ax.plot([0, 1], [i, i], label=f"drone {i}")
+    plots.place_legend(fig, ax, drones)
+    inside = drones <= plots.LEGEND_INSIDE_DRONES
+    assert (ax.get_legend() is not None) == inside
+    assert len(fig.legends) == (0 if inside else 1)
+    if not inside:
+        assert [t.get_text() for t in fig.legends[0].get_texts()] == [f"drone {i}" for i in range(drones)]

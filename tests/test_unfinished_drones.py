@@ -43,3 +43,18 @@ def test_legs_by_hand():
     assert _module().legs(target, time) == [[(0, 2.0), (1, 3.0)], [(0, 4.0)]]
     # drone 1 still flying at 6 s: its open leg to waypoint 1, 2 s so far
     assert _module().legs(target, time, np.array([False, True]))[1] == [(0, 4.0), (1, 2.0)]
+
+
+def test_gate_sides_by_hand():
+    # One gate at the origin passed along +y, half opening 0.4. Drone 0 crosses the plane 1 m to the side (beside
+    # the gate: not counted, its target stays 0) and ends 0.5 m past it; drone 1 crosses inside the opening (its
+    # target goes to 1: done, NaN after).
+    gate_pos, gate_yaw = np.zeros((1, 3)), np.array([np.pi / 2])
+    pos = np.zeros((3, 2, 3))
+    pos[:, 0] = [[1.0, -0.5, 0.0], [1.0, 0.2, 0.0], [1.0, 0.5, 0.0]]
+    pos[:, 1] = [[0.1, -0.5, 0.1], [0.1, 0.3, 0.1], [0.1, 0.6, 0.1]]
+    target = np.array([[0, 0], [0, 1], [0, 1]])
+    beside, side = _module().gate_sides(pos, target, gate_pos, gate_yaw, 0.4)
+    assert beside.tolist() == [1, 0]
+    np.testing.assert_allclose(side[:, 0], [-0.5, 0.2, 0.5], atol=1e-12)
+    assert side[0, 1] == -0.5 and np.isnan(side[1:, 1]).all()

@@ -209,6 +209,18 @@ def save_figure(fig, out: Path, dpi: float | None = None) -> Path:
 
 
 # ------------------------------------------------------------------ trajectories
+LEGEND_INSIDE_DRONES = 4  # more drones than this: the legend goes below the views
+
+
+def place_legend(fig, ax, drones: int) -> None:
+    """The drones' legend: in ``ax``'s corner for a few drones, below the figure for a swarm, whose legend inside
+    would hide the crowd it labels (a race-16 jam sits under it at the first gate)."""
+    if drones <= LEGEND_INSIDE_DRONES:
+        ax.legend(fontsize=7, loc="upper right")
+    else:
+        fig.legend(*ax.get_legend_handles_labels(), fontsize=7, loc="outside lower center", ncol=min(drones, 8))
+
+
 def plot_trajectories(ep: Episode, out: str | Path, *, three_d: bool = True, dpi: int = 100,
                       title: str | None = None) -> Path:
     """Write the trajectory figure: 3D view (optional), top view (x-y) and side view (along the track vs z).
@@ -325,7 +337,7 @@ def plot_trajectories(ep: Episode, out: str | Path, *, three_d: bool = True, dpi
     top.set_xlabel("x (m)")
     top.set_ylabel("y (m)")
     top.set_title("top view")
-    top.legend(fontsize=7, loc="upper right")
+    place_legend(fig, top, n)
     side.set_ylim(0, hi[2])
     side.set_ylabel("z (m)")
     side.set_title("side view")
