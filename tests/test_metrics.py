@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -230,3 +231,66 @@ def test_cli_eval_writes_report_and_keeps_stdout_json(tmp_path, monkeypatch, cap
     assert cli.main(["eval", "--checkpoint", str(tmp_path), "--out", str(tmp_path / "file")]) == 2
     err = capsys.readouterr().err.strip()
     assert "is a file; allowed: a folder" in err and len(err.splitlines()) == 1
+
+
+class _Clock(NamedTuple):
+    """A stand-in world for the evaluation loop: world i ends at step ends[i] and then starts again."""
+
+    t: jax.Array
+    end: jax.Array
+    obs: jax.Array
+    filter_obs: None
+    done: jax.Array
+    metrics: dict
+
+
+class _ClockEnv:
+    num_agents = 2
+
+    def __init__(self, max_steps: int):
+        self.config = type("Config", (), {"max_steps": max_steps})()
+
+    def reset(self, key):
+        end = 2 + jax.random.randint(key, (), 0, 5)  # 2 to 6 steps
+        return _Clock(jnp.zeros((), jnp.int32), end, jnp.zeros((2, 1)), None, jnp.zeros(()), self._metrics(0, end))
+
+    def _metrics(self, t, end):
+        return {"episode_length": jnp.asarray(t, jnp.float32), "drawn_end": jnp.asarray(end, jnp.float32)}
+
+    def step(self, s, u):
+        t = s.t + 1
+        done = t == s.end
+        return s._replace(t=jnp.where(done, 0, t), done=done.astype(jnp.float32), metrics=self._metrics(t, s.end))
+
+    def cylinder_accel(self, s):
+        return None
+
+    def applied_command(self, s):
+        return None
+
+
+class _HoverAgent:
+    def policy(self, params, obs_norm, obs, key):
+        return jnp.zeros(obs.shape[:-1] + (3,)), None, None
+
+    def filter_commands(self, params, obs_norm, obs, cmd, *rest):
+        z = jnp.zeros(cmd.shape[:-1])
+        return type("Filtered", (), {"u": cmd, "intervened": z, "slack": z, "escaped": z})()
+
+
+def test_an_evaluation_batch_stops_when_its_last_episode_ends():
+    # Worlds end after 2 to 6 steps on a 20-step clock: the batch stops at the latest end, each episode recorded at
+    # its own; a batch of one world stops at its own end.
+    env, lines = _ClockEnv(20), []
+    rec, ended, stats = evaluate.rollout_with_filter_stats(_HoverAgent(), None, None, env, 6, jax.random.PRNGKey(0),
+                                                           progress=lines.append)
+    drawn = np.asarray(rec["drawn_end"])
+    assert np.asarray(ended).all() and drawn.min() >= 2 and drawn.max() <= 6 and len(set(drawn)) > 1
+    np.testing.assert_array_equal(rec["episode_length"], drawn)
+    assert lines[-1] == f"episodes 1-6 of 6: all ended by step {int(drawn.max())} of 20"
+    assert float(stats.infeasible_rate) == 0.0
+    lines.clear()
+    rec, _, _ = evaluate.rollout_with_filter_stats(_HoverAgent(), None, None, env, 3, jax.random.PRNGKey(0), batch=1,
+                                                   progress=lines.append)
+    assert [line for line in lines if "all ended" in line] == [
+        f"episodes {i + 1}-{i + 1} of 3: all ended by step {int(e)} of 20" for i, e in enumerate(rec["drawn_end"])]

@@ -69,7 +69,8 @@ def wilson(successes: float, n: int, z: float = 1.96) -> tuple[float, float]:
 def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv, episodes: int, key: jax.Array,
                               batch: int = EVAL_BATCH, progress: Callable[[str], None] | None = None
                               ) -> tuple[dict, jax.Array, FilterStats]:
-    """Run ``episodes`` worlds to their end with the deterministic, filtered policy.
+    """Run ``episodes`` worlds to their end with the deterministic, filtered policy (a batch stops at its last
+    episode's end, or at the clock).
 
     Returns the metrics of each episode ([episodes] arrays), which episodes ended, and the filter's
     :class:`FilterStats` over the drone-steps of worlds still running. Episode i starts from
@@ -84,6 +85,11 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         progress(f"episodes {shown['first'] + 1}-{shown['last']} of {episodes}: step {int(t)} of "
                  f"{env.config.max_steps}")
 
+    def report_end(t):
+        if int(t) < env.config.max_steps:  # (at the clock the last line above said so)
+            progress(f"episodes {shown['first'] + 1}-{shown['last']} of {episodes}: all ended by step {int(t)} of "
+                     f"{env.config.max_steps}")
+
     every = max(1, env.config.max_steps // PROGRESS_LINES)
     reset = jax.vmap(env.reset)
     step = jax.vmap(env.step)
@@ -96,8 +102,9 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
         recorded = jax.tree.map(jnp.zeros_like, state.metrics)
         ended = jnp.zeros(keys.shape[0], bool)
 
-        def body(carry, t):
-            s, rec, ended, interventions, infeasible, escapes, flying = carry
+        def body(carry):
+            t, s, rec, ended, interventions, infeasible, escapes, flying = carry
+            t = t + 1
             cmd, _, _ = agent.policy(params, obs_norm, s.obs, None)
             res = agent.filter_commands(params, obs_norm, s.obs, cmd, env.cylinder_accel(s), s.filter_obs,
                                         env.applied_command(s))
@@ -109,14 +116,21 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
             infeasible = infeasible + jnp.sum((res.slack > INFEASIBLE_SLACK) * live[:, None])
             escapes = escapes + jnp.sum(res.escaped * live[:, None])
             flying = flying + jnp.sum(live) * env.num_agents
-            if progress is not None:  # (static: without it the program is the one it always was)
+            if progress is not None:  # (static: without it the program has no callback)
                 jax.lax.cond(t % every == 0, lambda: jax.debug.callback(report, t), lambda: None)
-            return (s, rec, ended | first, interventions, infeasible, escapes, flying), None
+            return t, s, rec, ended | first, interventions, infeasible, escapes, flying
 
-        init = (state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()), jnp.zeros(()))
-        steps = None if progress is None else jnp.arange(1, env.config.max_steps + 1)  # the step, for the lines
-        (_, rec, ended, interventions, infeasible, escapes, flying), _ = jax.lax.scan(
-            body, init, steps, length=env.config.max_steps)
+        # The batch stops when its last episode has ended, not at the clock: nothing is recorded or counted after
+        # (every sum above is masked by ~ended), so the numbers are the scan's over max_steps, sooner.
+        def running(carry):
+            t, ended = carry[0], carry[3]
+            return (t < env.config.max_steps) & ~jnp.all(ended)
+
+        init = (jnp.zeros((), jnp.int32), state, recorded, ended, jnp.zeros(()), jnp.zeros(()), jnp.zeros(()),
+                jnp.zeros(()))
+        t, _, rec, ended, interventions, infeasible, escapes, flying = jax.lax.while_loop(running, body, init)
+        if progress is not None:
+            jax.debug.callback(report_end, t)
         return rec, ended, interventions, infeasible, escapes, flying
 
     if batch <= 0:
