@@ -1140,14 +1140,14 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
-    # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race policy,
-    # whose stored filter takes it since session 42; new runs take 0.5.
+    # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race and the
+    # dynamic policies, whose stored filters take it since sessions 42 and 43; new runs take 0.5.
     from aswarm.analysis import evaluate
     from aswarm.training import run_config
 
     assert SafetyFilterConfig().neighbour_release == 0.5
     for name in evaluate.shipped():
-        want = 0.5 if name == "pretrained" else 0.0
+        want = 0.5 if name in ("pretrained", "pretrained:dynamic") else 0.0
         assert run_config.read(evaluate.run_folder(name)).safety_filter.neighbour_release == want, name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
