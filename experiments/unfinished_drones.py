@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         chosen = failed_episodes(agent, restored, count, key) if args.failed_of else np.arange(count)
     by_line: dict[int, int] = {}
-    far_side = 0
+    far_side, track = 0, False
     slowest_at: dict[int, int] = {}
     for i in chosen:
         ep = plots.record_episode(agent, restored["params"], restored["obs_norm"], keys[i])
@@ -166,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['moved']:.2f} m in the last {STILL_WINDOW_S:.0f} s")
     print("unfinished drones of the episodes without a collision, by start line (0 = front): "
           + (", ".join(f"line {k}: {v}" for k, v in sorted(by_line.items())) or "none"))
-    print(f"of those, past their gate's plane without having passed it: {far_side}")
+    if track:
+        print(f"of those, past their gate's plane without having passed it: {far_side}")
     if args.failed_of:
         print("each drone's slowest leg, by the waypoint it led to: "
               + (", ".join(f"{k}: {v}" for k, v in sorted(slowest_at.items())) or "none"))

@@ -234,7 +234,7 @@ def test_cli_eval_writes_report_and_keeps_stdout_json(tmp_path, monkeypatch, cap
 
 
 class _Clock(NamedTuple):
-    """A stand-in world for the evaluation loop: world i ends at step ends[i] and then starts again."""
+    """A stand-in world for the evaluation loop: it ends at its drawn step ``end`` and then starts again."""
 
     t: jax.Array
     end: jax.Array
