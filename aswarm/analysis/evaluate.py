@@ -121,8 +121,9 @@ def rollout_with_filter_stats(agent: Agent, params, obs_norm, env: envs.SwarmEnv
             return t, s, rec, ended | first, interventions, infeasible, escapes, flying
 
         # The batch stops when its last episode has ended, not at the clock: nothing is recorded or counted after
-        # (every sum above is masked by ~ended), so the episodes end as they did when it ran to the clock (to the
-        # last bits of a mean: XLA may fuse this loop a little otherwise), sooner.
+        # (every sum above is masked by ~ended), so the same episodes give the same outcomes, sooner (XLA may fuse
+        # this loop a little otherwise than a scan: a closed loop carries that on into a mean's last digits,
+        # BENCHMARKS.md, "Evaluation").
         def running(carry):
             t, ended = carry[0], carry[3]
             return (t < env.config.max_steps) & ~jnp.all(ended)
