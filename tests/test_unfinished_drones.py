@@ -1,6 +1,7 @@
 """experiments/unfinished_drones.py: the rows of a timed-out episode, against a hand-built one."""
 
 import numpy as np
+import pytest
 from experiment_scripts import load
 
 
@@ -58,3 +59,12 @@ def test_gate_sides_by_hand():
     assert beside.tolist() == [1, 0]
     np.testing.assert_allclose(side[:, 0], [-0.5, 0.2, 0.5], atol=1e-12)
     assert side[0, 1] == -0.5 and np.isnan(side[1:, 1]).all()
+
+
+def test_bad_only_gets_a_one_line_error(capsys):
+    for only, allowed in (("6,x", "episode numbers separated by commas"), ("8", "episode numbers from 0 to 7")):
+        with pytest.raises(SystemExit) as e:
+            _module().main(["--checkpoint", "pretrained", "--only", only])
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"invalid --only={only!r}" in err and allowed in err
