@@ -539,6 +539,45 @@ def test_weighted_slack_lets_the_static_rows_give_way_less_hand_derived():
     np.testing.assert_allclose(np.asarray(u_jax), u_np, atol=2e-4)
 
 
+
+def test_proximity_slack_lets_the_far_row_give_way_first_hand_derived():
+    """A cylinder 1.2 m off asks u_x ≥ 1 (it moves at the drone), a neighbour 0.3 m off on the other side −u_x ≥ 0:
+    no command satisfies both. Equal weights give 0.5 m/s each, into the neighbour too. With proximity_slack 1 m the
+    neighbour's row weighs clip(0.3 / 1, 0.1, 1) = 0.3 and the cylinder's 1: u_x + s ≥ 1 and −u_x + 0.3 s ≥ 0 give
+    s = 1/1.3 and u_x = 0.3 s = 0.2308: the near row gives 0.23 m/s, the far one 0.77. Its weight is floored at
+    proximity_slack_min, and absent rows (any h) keep weight 1; JAX and numpy agree."""
+    layout = ObsLayout(num_cylinders=1, num_neighbours=1)
+    m = 2 + barriers.FIXED_ROWS
+    A = np.zeros((m, 3))
+    A[0], A[1] = [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]
+    b, mask, h = np.zeros(m), np.zeros(m, bool), np.full(m, np.nan)
+    b[0], mask[:2], h[:2] = 1.0, True, [1.2, 0.3]
+    rows = Rows(A, b, mask, h)
+    assert barriers.row_slack_weights(layout, rows, SafetyFilterConfig(static_slack=1.0)) is None
+    safety = SafetyFilterConfig(static_slack=1.0, proximity_slack=1.0)
+    w = barriers.row_slack_weights(layout, rows, safety)
+    np.testing.assert_allclose(w, [1.0, 0.3] + [1.0] * barriers.FIXED_ROWS)
+    even = np_cbf.filter_velocity(np.zeros(3), A, b, mask, U_MAX)
+    np.testing.assert_allclose(even.u, [0.5, 0.0, 0.0], atol=1e-5)
+    s = 1 / 1.3
+    near = np_cbf.filter_velocity(np.zeros(3), A, b, mask, U_MAX, slack_weight=w)
+    np.testing.assert_allclose(near.u, [0.3 * s, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(near.slack, s, atol=1e-5)
+    jw = barriers.row_slack_weights(layout, Rows(*(jnp.asarray(x) for x in rows)), safety)
+    res = single_filter(jnp.zeros(3), jnp.asarray(A), jnp.asarray(b), jnp.asarray(mask), U_MAX, slack_weight=jw)
+    np.testing.assert_allclose(res.u, [0.3 * s, 0.0, 0.0], atol=1e-4)
+    # With the static weights: the floor's row (index 2) at 0.5 m weighs 0.1 · 0.5; a row inside its margin the floor.
+    rows = Rows(A, b, np.ones(m, bool), np.concatenate([[-0.2, 0.3, 0.5], np.full(m - 3, 2.0)]))
+    w = barriers.row_slack_weights(layout, rows, SafetyFilterConfig(proximity_slack=1.0, proximity_slack_min=0.2))
+    np.testing.assert_allclose(w[:4], [0.2, 0.3, 0.05, 0.1])
+    # A batch of drones (the flight runtime's [n, m] weights) solves as each drone alone.
+    batch = np_cbf.filter_velocity(np.zeros((2, 3)), np.stack([A, A]), np.stack([b, b]), np.stack([mask, mask]),
+                                   U_MAX, slack_weight=np.stack([np.ones(m), w]))
+    np.testing.assert_allclose(batch.u[0], even.u, atol=1e-9)
+    alone = np_cbf.filter_velocity(np.zeros(3), A, b, mask, U_MAX, slack_weight=w)
+    np.testing.assert_allclose(batch.u[1], alone.u, atol=1e-9)
+
+
 # ---------------------------------------------------------------- rows from observations
 def _random_obs(rng, layout, lead):
     """Raw observations [lead..., D] with valid presence flags, unit (or absent) gate normals and positive
@@ -1123,6 +1162,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
             ({"closing_split": -0.3}, r"invalid safety_filter.closing_split=-0.3: allowed: >= 0"),
             ({"neighbour_reference": 1.5}, r"invalid safety_filter.neighbour_reference=1.5: allowed: \[0, 1\]"),
             ({"neighbour_release": -1}, r"invalid safety_filter.neighbour_release=-1: allowed: >= 0"),
+            ({"proximity_slack": -1}, r"invalid safety_filter.proximity_slack=-1: allowed: >= 0"),
+            ({"proximity_slack_min": 0}, r"invalid safety_filter.proximity_slack_min=0: allowed: \(0, 1\]"),
             ({"lookahead_z": -0.1}, r"invalid safety_filter.lookahead_z=-0.1: allowed: >= 0"),
             ({"fit_lookahead": 1}, r"invalid safety_filter.fit_lookahead=1: allowed: true or false"),
             ({"lookahead_scale": -1.0}, r"invalid safety_filter.lookahead_scale=-1.0: allowed: >= 0")):
@@ -1140,14 +1181,15 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
-    # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race and the
-    # dynamic policies, whose stored filters take it since sessions 42 and 43; new runs take 0.5.
+    assert from_manifest(old).proximity_slack == 0.0
+    # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race, the
+    # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44; new runs 0.5.
     from aswarm.analysis import evaluate
     from aswarm.training import run_config
 
     assert SafetyFilterConfig().neighbour_release == 0.5
     for name in evaluate.shipped():
-        want = 0.5 if name in ("pretrained", "pretrained:dynamic") else 0.0
+        want = 0.5 if name in ("pretrained", "pretrained:dynamic", "pretrained:race-moving") else 0.0
         assert run_config.read(evaluate.run_folder(name)).safety_filter.neighbour_release == want, name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)

@@ -300,9 +300,7 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
         rows = barriers.filter_rows(layout, o, g, safety, drone_radius=drone_radius,
                                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=a,
                                     braking=braking, whole_swarm=whole_swarm)
-        # (a static choice: a filter without it traces as it did before it existed)
-        weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
-                                                                              rows.b.shape[-1])
+        weight = barriers.row_slack_weights(layout, rows, safety)
 
         def solve(nominal):
             return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,

@@ -547,6 +547,25 @@ def slack_weights(layout, static_weight: float, num_rows: int | None = None) -> 
     return np.concatenate([np.ones(m), np.full(FIXED_ROWS, float(static_weight)), np.ones(after)])
 
 
+def row_slack_weights(layout, rows: Rows, safety):
+    """[..., m] each of ``rows``' share of the filter's shared slack (``rows`` as :func:`filter_rows` gives them), or
+    None for equal shares (the program of before the weights, so stored policies keep their bits).
+
+    :func:`slack_weights`' static weights, times clip(h / ``safety.proximity_slack``, ``proximity_slack_min``, 1)
+    where ``proximity_slack`` > 0: of two rows that cannot both hold, the one whose hazard is farther (a larger
+    barrier value h) gives way more. A fast cylinder's row asks a drone to match its speed while it is still metres
+    off; a neighbour 0.3 m away leaves no such room, and under equal weights the two gave alike.
+    """
+    if safety.static_slack == 1 and safety.proximity_slack == 0:
+        return None
+    weight = slack_weights(layout, safety.static_slack, rows.b.shape[-1])
+    if safety.proximity_slack > 0:
+        xp = geometry.namespace(rows.b)
+        near = xp.clip(rows.h / safety.proximity_slack, safety.proximity_slack_min, 1.0)
+        weight = weight * xp.where(rows.mask, near, 1.0)  # (an absent row's h may be anything)
+    return weight
+
+
 def _merge_gates(rows: Rows) -> Rows:
     """Rows [..., g, 5] of g gates (A [..., g, 5, 3]) as the rows [..., 5 g] of one gate after the other."""
     lead, k = rows.b.shape[:-2], rows.b.shape[-2] * rows.b.shape[-1]

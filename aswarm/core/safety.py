@@ -82,6 +82,14 @@ class SafetyFilterConfig:
     # slack and the cylinders and neighbours all of it (aswarm.core.barriers.slack_weights): 1 spreads it evenly, as
     # runs and bundles from before it do.
     static_slack: float = 0.1
+    # m: > 0 also weighs each row's share of that slack by how near its hazard is, clip(h / this, proximity_slack_min,
+    # 1) (aswarm.core.barriers.row_slack_weights): when no command satisfies every row, a far hazard's row (a fast
+    # cylinder 1.3 m off, whose row already asks the drone to move at its speed) gives way before a near one's (a
+    # neighbour 0.3 m off). Under equal weights the two gave alike, and the dynamic cells' traced drone–drone
+    # collisions were pairs fleeing one fast cylinder into each other (README, "The fast cells' collisions").
+    # 0 (runs and bundles from before it): the weights static_slack sets.
+    proximity_slack: float = 0.0
+    proximity_slack_min: float = 0.1  # the least factor a near row's weight takes under proximity_slack
     # Deadlock escape: where the QP leaves a drone less than escape_stuck of the speed the policy asked for along
     # its direction, and a nearby hazard (barrier under escape_near m) faces that direction, the QP is solved again
     # from the same speed along that hazard's horizontal tangent, on the side away from the other nearby hazards
@@ -140,14 +148,15 @@ class SafetyFilterConfig:
                 raise ValueError(f"invalid safety_filter.{f.name}={v!r}: allowed: a finite number")
         if not 0 < self.gain_min < self.gain_max:
             raise ValueError(f"invalid gain_min={self.gain_min}, gain_max={self.gain_max}: need 0 < min < max")
-        if not 0 < self.static_slack <= 1:
-            raise ValueError(f"invalid safety_filter.static_slack={self.static_slack!r}: allowed: (0, 1]")
+        for name in ("static_slack", "proximity_slack_min"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: (0, 1]")
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
         for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
                      "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near", "closing_split",
-                     "neighbour_release"):
+                     "neighbour_release", "proximity_slack"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
@@ -240,7 +249,8 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
               "escape": False, "escape_stuck": 0.25,
               "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1,
-              "neighbour_reference": 1.0, "neighbour_release": 0.0, **safety}
+              "neighbour_reference": 1.0, "neighbour_release": 0.0, "proximity_slack": 0.0, "proximity_slack_min": 0.1,
+              **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
     if missing:
         raise ValueError(f"invalid manifest safety_filter: missing {', '.join(missing)}; allowed: a bundle from "

@@ -417,8 +417,8 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
 
     A [..., m, 3]; b, mask [..., m]; u_max scalar or [3]. Rows are normalised to unit ‖a_j‖ (rows with
     a_j ≈ 0 are ignored). A command that satisfies every row and the box (to ``tol``) is returned
-    unchanged; only the other problems go through the active-set steps. ``slack_weight`` [m]: each row's share
-    of the shared slack (None: 1), as in the JAX filter. ``box`` = (lo, hi) [..., 3] in place of ±u_max, as there.
+    unchanged; only the other problems go through the active-set steps. ``slack_weight`` [m] or [..., m]: each row's
+    share of the shared slack (None: 1), as in the JAX filter. ``box`` = (lo, hi) [..., 3] in place of ±u_max, as there.
     """
     u_nom = np.asarray(u_nom, np.float64)
     lead, m = u_nom.shape[:-1], A.shape[-2]
@@ -432,7 +432,7 @@ def filter_velocity(u_nom: np.ndarray, A: np.ndarray, b: np.ndarray, mask: np.nd
     G, h, valid = _qp_rows(P, m, u_max, float(rho))
     G[:, :m, :3] = a_hat
     if slack_weight is not None:
-        G[:, :m, 3] = np.asarray(slack_weight, np.float64) / np.sqrt(rho)
+        G[:, :m, 3] = np.broadcast_to(np.asarray(slack_weight, np.float64), lead + (m,)).reshape(P, m) / np.sqrt(rho)
     h[:, :m] = np.where(valid_rows, np.asarray(b, np.float64).reshape(P, m) / np.where(valid_rows, nrm, 1.0), 0.0)
     valid[:, :m] = valid_rows
     if box is not None:
@@ -476,8 +476,7 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     rows = barriers.filter_rows(layout, obs, np.asarray(gain, np.float64), safety, drone_radius=drone_radius,
                                 gate_half_opening=gate_half_opening, gate_bar=gate_bar, cyl_accel=accel,
                                 braking=braking, whole_swarm=barriers.sees_whole_swarm(layout, obs))
-    weight = None if safety.static_slack == 1 else barriers.slack_weights(layout, safety.static_slack,
-                                                                          rows.b.shape[-1])
+    weight = barriers.row_slack_weights(layout, rows, safety)
 
     def solve(nominal):
         return filter_velocity(nominal, rows.A, rows.b, rows.mask, u_max, rho=safety.rho, max_iter=safety.max_iter,
