@@ -1190,7 +1190,10 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert SafetyFilterConfig().neighbour_release == 0.5
     for name in evaluate.shipped():
         want = 0.5 if name in ("pretrained", "pretrained:dynamic", "pretrained:race-moving") else 0.0
-        assert run_config.read(evaluate.run_folder(name)).safety_filter.neighbour_release == want, name
+        stored = run_config.read(evaluate.run_folder(name)).safety_filter
+        assert stored.neighbour_release == want, name
+        # Slack weighed by nearness: the dynamic policy's stored filter alone (session 44).
+        assert stored.proximity_slack == (1.0 if name == "pretrained:dynamic" else 0.0), name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
