@@ -539,7 +539,6 @@ def test_weighted_slack_lets_the_static_rows_give_way_less_hand_derived():
     np.testing.assert_allclose(np.asarray(u_jax), u_np, atol=2e-4)
 
 
-
 def test_proximity_slack_lets_the_far_row_give_way_first_hand_derived():
     """A cylinder 1.2 m off asks u_x ≥ 1 (it moves at the drone), a neighbour 0.3 m off on the other side −u_x ≥ 0:
     no command satisfies both. Equal weights give 0.5 m/s each, into the neighbour too. With proximity_slack 1 m the
