@@ -86,8 +86,9 @@ class SafetyFilterConfig:
     # 1) (aswarm.core.barriers.row_slack_weights): when no command satisfies every row, a far hazard's row (a fast
     # cylinder 1.3 m off, whose row already asks the drone to move at its speed) gives way before a near one's (a
     # neighbour 0.3 m off); under equal weights the two gave alike. 1 m flies pretrained:dynamic with no collision
-    # over dynamic-3's 10,000 episodes, but lets a drone fleeing a fast cylinder leave the arena (README, "Slack
-    # weighed by nearness"). 0 (runs and bundles from before it, and new runs): the weights static_slack sets.
+    # over dynamic-3's 10,000 episodes and pretrained over race-8's 2,000, but lets a drone fleeing a fast cylinder
+    # leave the arena (README, "Slack weighed by nearness"). 0 (runs and bundles from before it, and new runs): the
+    # weights static_slack sets.
     proximity_slack: float = 0.0
     proximity_slack_min: float = 0.1  # the least factor a near row's weight takes under proximity_slack
     # Deadlock escape: where the QP leaves a drone less than escape_stuck of the speed the policy asked for along
