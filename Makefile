@@ -12,12 +12,16 @@ unexport PYTHONDONTWRITEBYTECODE
 
 .PHONY: install train test bench bench-train bench-flight paper-table safety-matrix lint clean
 
-# --no-compile: byte-compiling every installed module costs half the install (29 s against 58 s here); Python
+# uv installs the same pinned set as pip in a third of the time (14 s against 40 s on a 2-core machine: it fetches
+# in parallel); it reads no pip configuration, so where it cannot reach the index (a mirror set in pip.conf) pip
+# installs instead. Neither byte-compiles (pip: --no-compile): that cost half of pip's install, and Python
 # compiles what it imports on first use.
+EXTRAS := .[dev,flight,interfaces,wandb,optuna]
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q --no-compile -c constraints.txt -e '.[dev,flight,interfaces,wandb,optuna]'
+	$(PY) -m pip install -q -c constraints.txt uv
+	$(VENV)/bin/uv pip install -q --python $(PY) -c constraints.txt -e '$(EXTRAS)' \
+		|| $(PY) -m pip install -q --no-compile -c constraints.txt -e '$(EXTRAS)'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -474,9 +474,11 @@ def rollout_mpc(env: SwarmEnv, config: MPCConfig, episodes: int, key: jax.Array,
     if reset_keys is not None and reset_keys.shape[0] != episodes:
         raise ValueError(f"invalid reset_keys: {reset_keys.shape[0]} keys for {episodes} episodes: allowed: one each")
 
-    def run(key):
+    # The reset keys are an argument, not a constant of the program: the same episodes drawn otherwise (another
+    # policy's seed, the keys in another order) then run the same compiled program.
+    def run(key, keys):
         k_reset, k_act = jax.random.split(key)
-        state = reset(jax.random.split(k_reset, episodes) if reset_keys is None else reset_keys)
+        state = reset(jax.random.split(k_reset, episodes) if keys is None else keys)
         rec = jax.tree.map(jnp.zeros_like, state.metrics)
         ended = jnp.zeros(episodes, bool)
 
@@ -495,7 +497,7 @@ def rollout_mpc(env: SwarmEnv, config: MPCConfig, episodes: int, key: jax.Array,
         out = jax.lax.while_loop(lambda c: ~jnp.all(c[3]), chunk_body, init)
         return out[2]
 
-    return jax.jit(run)(key)
+    return jax.jit(run)(key, reset_keys)
 
 
 def time_per_step(env: SwarmEnv, config: MPCConfig, worlds: int = 256, repeats: int = 5) -> dict[str, float]:
