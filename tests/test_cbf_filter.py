@@ -228,6 +228,39 @@ def test_moving_gain_cap_is_a_gain_per_hazard_hand_derived():
     np.testing.assert_allclose(np.asarray(got.b), cyl.b, atol=1e-12)
 
 
+def test_moving_margin_widens_the_moving_cylinders_rows_alone_hand_derived():
+    """The scene above with moving_margin 0.1 m: the moving cylinder's barrier is h − 0.1 and its row b + γ 0.1 (here
+    with the cap's 0.8 /s), the static one's and the floor's unchanged; numpy and JAX agree; in the config it needs
+    the bounds that tell a moving cylinder, as the cap does."""
+    R, r, margin, lag, a, extra = 0.2, 0.05, 0.05, 0.3, 2.0, 0.1
+    pos, vel = np.array([0.5, 0.5, 1.0]), np.zeros(3)
+    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
+    accel, present = np.array([a, 0.0]), np.ones(2, bool)
+    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
+    args = (pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none, np.array([2.0]))
+    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(accel, lag),
+              moving_gain_max=0.8)
+    plain = barriers._barrier_parts(*args, **kw)
+    wide = barriers._barrier_parts(*args, moving_margin=extra, **kw)
+    d = np.sqrt(0.5)
+    np.testing.assert_allclose(wide[0].h, [d - (R + r + margin + extra), 0.6 - (R + r + margin)], atol=1e-9)
+    np.testing.assert_allclose(wide[0].b, plain[0].b + [0.8 * extra, 0.0], atol=1e-9)
+    np.testing.assert_allclose(wide[2].b, plain[2].b, atol=1e-12)  # the floor keeps margin alone
+    with jax.enable_x64(True):
+        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), moving_margin=extra,
+                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
+    np.testing.assert_allclose(np.asarray(got.b), wide[0].b, atol=1e-12)
+    # Without the bounds (cyl_motion None) no cylinder is known to move: nothing changes.
+    still = {**kw, "cyl_motion": None, "moving_gain_max": 0.0}
+    np.testing.assert_allclose(barriers._barrier_parts(*args, moving_margin=extra, **still)[0].b,
+                               barriers._barrier_parts(*args, **still)[0].b, atol=1e-12)
+    with pytest.raises(ValueError, match=r"moving_margin=0.1 with hazard_accel=false: allowed: 0, or hazard_accel"):
+        SafetyFilterConfig(moving_margin=0.1, hazard_accel=False)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.moving_margin=-0.1: allowed: >= 0"):
+        SafetyFilterConfig(moving_margin=-0.1)
+    assert SafetyFilterConfig(moving_margin=0.1).fitted(0.5, 0.2).moving_margin == 0.1  # a distance: not scaled
+
+
 def test_neighbour_rows_split_the_pair_condition():
     rng = np.random.default_rng(6)
     p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)

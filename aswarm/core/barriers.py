@@ -334,12 +334,14 @@ def barrier_rows(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos
 def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_pos, nbr_vel, nbr_present, gamma, *,
                    drone_radius: float, margin: float, floor_z: float, neighbour_share, neighbour_reference=1.0,
                    neighbour_release: float = 0.0, cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
-                   nbr_braking: tuple | None = None, moving_gain_max: float = 0.0) -> list[Rows]:
+                   nbr_braking: tuple | None = None, moving_gain_max: float = 0.0,
+                   moving_margin: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
     ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
-    ones) take at most that gain. ``cyl_braking`` = (cmd, decel, dt, lag) makes the cylinders' rows braking barriers
-    (None: velocity rows); ``nbr_braking`` = (cmd, decel, dt, gain) adds the neighbours' braking rows as a fourth
-    part, beside their velocity rows, with that class-K gain (1/s; 0: the neighbours' rows' own)."""
+    ones) take at most that gain, and with ``moving_margin`` > 0 (m) keep that much more than ``margin``.
+    ``cyl_braking`` = (cmd, decel, dt, lag) makes the cylinders' rows braking barriers (None: velocity rows);
+    ``nbr_braking`` = (cmd, decel, dt, gain) adds the neighbours' braking rows as a fourth part, beside their
+    velocity rows, with that class-K gain (1/s; 0: the neighbours' rows' own)."""
     xp = geometry.namespace(pos)
     M, K = cyl_center.shape[-2], nbr_pos.shape[-2]
     gamma = xp.asarray(gamma, dtype=pos.dtype)
@@ -356,14 +358,17 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         g_cyl, g_nbr, g_floor = gamma[..., :M], gamma[..., M:M + K], gamma[..., M + K:]
     if moving_gain_max > 0 and cyl_motion is not None:  # (a static choice: without it the rows trace as before)
         g_cyl = xp.where(cyl_motion[0] > 0, xp.minimum(g_cyl, xp.asarray(moving_gain_max, dtype=pos.dtype)), g_cyl)
+    cyl_margin = margin
+    if moving_margin > 0 and cyl_motion is not None:  # (static, as the gain cap above)
+        cyl_margin = margin + (cyl_motion[0] > 0) * xp.asarray(moving_margin, dtype=pos.dtype)
     if cyl_braking is None:
         cyl = cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
-                            margin=margin, motion=cyl_motion)
+                            margin=cyl_margin, motion=cyl_motion)
     else:
         cmd, decel, dt, lag = cyl_braking
         accel = xp.zeros_like(cyl_radius) if cyl_motion is None else cyl_motion[0]
         cyl = cylinder_braking_rows(pos, cmd, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, accel=accel,
-                                    lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=margin)
+                                    lag=lag, decel=decel, dt=dt, drone_radius=drone_radius, margin=cyl_margin)
     parts = [cyl,
              neighbour_rows(pos, vel, nbr_pos, nbr_vel, nbr_present, g_nbr, drone_radius=drone_radius, margin=margin,
                             share=neighbour_share, reference=neighbour_reference, release=neighbour_release),
@@ -379,7 +384,8 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
-             moving_gain_max: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
+             moving_gain_max: float = 0.0, moving_margin: float = 0.0,
+             brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0,
              closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0,
              neighbour_release: float = 0.0) -> Rows:
@@ -412,7 +418,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     acceleration, so its row holds against the worst within the bound (:func:`cylinder_rows`' ``motion``; a static
     one, bound 0, keeps its row; nothing changes without a look-ahead, where the command acts at once).
     ``moving_gain_max`` > 0 (1/s): the rows of the cylinders whose bound is > 0 take at most this gain (a gain per
-    hazard: conservative towards what moves); it needs ``cyl_accel``.
+    hazard: conservative towards what moves); it needs ``cyl_accel``. ``moving_margin`` > 0 (m): those cylinders'
+    rows keep that much more clearance than ``margin`` (their barrier binds that much sooner); it needs ``cyl_accel``.
 
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
@@ -484,7 +491,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
                             neighbour_release=neighbour_release, cyl_motion=motion,
                             cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
                             nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
-                            moving_gain_max=moving_gain_max)
+                            moving_gain_max=moving_gain_max, moving_margin=moving_margin)
     points, after = points[:3], points[3:]  # after: the neighbours' braking rows, if any, go last
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
@@ -520,6 +527,7 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
+                    moving_margin=safety.moving_margin,
                     brake=(safety.braking, safety.neighbour_braking, safety.gate_braking),
                     braking_gain=safety.neighbour_braking_gain,
                     lookahead_accel=safety.lookahead_accel,

@@ -105,6 +105,12 @@ class SafetyFilterConfig:
     # network likes towards the rest. Scaled with the other gains to the drone (fitted). It needs hazard_accel, whose
     # bounds tell the moving cylinders (bound > 0) from the static ones. Runs and bundles from before read back 0.
     moving_gain_max: float = 0.0
+    # m: the moving cylinders' rows alone (bound > 0, as above) keep this much more than margin. Their row binds that
+    # much sooner: the drone's command reaches the filter's only at the command acceleration limit, and in the one
+    # collision of pretrained:dynamic over dynamic-2's 2,000 episodes the cylinder's row turned negative 0.45 s before
+    # contact while the flown command lagged the filter's by up to 2.1 m/s (README, "A margin for what moves").
+    # Not scaled to the drone (a distance). It needs hazard_accel. Runs and bundles from before read back 0.
+    moving_margin: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     # m/s: > 0 splits each pair of drones by how fast each one closes on the other (its velocity towards the other),
@@ -155,14 +161,15 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("moving_gain_max", "neighbour_braking_gain", "margin", "lookahead_xy", "lookahead_z",
-                     "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near", "closing_split",
-                     "neighbour_release", "proximity_slack"):
+        for name in ("moving_gain_max", "moving_margin", "neighbour_braking_gain", "margin", "lookahead_xy",
+                     "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near",
+                     "closing_split", "neighbour_release", "proximity_slack"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
-        if self.moving_gain_max > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
-            raise ValueError(f"invalid safety_filter.moving_gain_max={self.moving_gain_max!r} with hazard_accel=false: "
-                             "allowed: 0, or hazard_accel=true")
+        for name in ("moving_gain_max", "moving_margin"):
+            if getattr(self, name) > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
+                raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r} with hazard_accel=false: "
+                                 "allowed: 0, or hazard_accel=true")
         if self.lookahead_accel > 0 and self.lookahead_xy <= 0:  # the fit's c1 is not the drone's lag
             raise ValueError(f"invalid safety_filter.lookahead_accel={self.lookahead_accel!r} with lookahead_xy="
                              f"{self.lookahead_xy!r}: allowed: lookahead_accel 0, or lookahead_xy > 0 (its fit's c1, "
@@ -248,8 +255,8 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "lookahead_accel": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
-              "escape": False, "escape_stuck": 0.25,
-              "escape_near": 0.3, "moving_gain_max": 0.0, "closing_split": 0.0, "closing_share_min": 0.1,
+              "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, "moving_gain_max": 0.0, "moving_margin": 0.0,
+              "closing_split": 0.0, "closing_share_min": 0.1,
               "neighbour_reference": 1.0, "neighbour_release": 0.0, "proximity_slack": 0.0, "proximity_slack_min": 0.1,
               **safety}
     missing = [f.name for f in dataclasses.fields(SafetyFilterConfig) if f.name not in safety]
