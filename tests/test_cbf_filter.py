@@ -1213,7 +1213,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert SafetyFilterConfig(moving_gain_max=1.36).fitted(0.5, 0.2).moving_gain_max == 0.68
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
-    assert from_manifest(old).proximity_slack == 0.0
+    assert from_manifest(old).proximity_slack == 0.0 and from_manifest(old).moving_margin == 0.0
     # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race, the
     # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44; new runs 0.5.
     from aswarm.analysis import evaluate
@@ -1226,6 +1226,8 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         assert stored.neighbour_release == want, name
         # Slack weighed by nearness: the dynamic (session 44) and the race (session 45) policies' stored filters.
         assert stored.proximity_slack == (1.0 if name in ("pretrained", "pretrained:dynamic") else 0.0), name
+        # A margin for what moves: the dynamic policy's since session 46.
+        assert stored.moving_margin == (0.1 if name == "pretrained:dynamic" else 0.0), name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
