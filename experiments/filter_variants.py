@@ -41,8 +41,9 @@ def main(argv: list[str] | None = None) -> int:
 
     seed = EVAL_SEED if args.seed is None else args.seed
     names = ("success_rate", "collision_rate", "collision_gate_rate", "collision_floor_rate",
-             "collision_obstacle_rate", "collision_drone_rate", "filter_intervention_rate", "filter_infeasible_rate",
-             "filter_escape_rate")
+             "collision_obstacle_rate", "collision_drone_rate", "collision_bounds_rate", "filter_intervention_rate",
+             "filter_infeasible_rate", "filter_escape_rate")
+
     def progress(line: str) -> None:
         print(f"  {line} [{time.perf_counter() - t0:.0f} s]", file=sys.stderr, flush=True)
 
