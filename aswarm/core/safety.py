@@ -109,7 +109,9 @@ class SafetyFilterConfig:
     # much sooner: the drone's command reaches the filter's only at the command acceleration limit, and in the one
     # collision of pretrained:dynamic over dynamic-2's 2,000 episodes the cylinder's row turned negative 0.45 s before
     # contact while the flown command lagged the filter's by up to 2.1 m/s (README, "A margin for what moves").
-    # Not scaled to the drone (a distance). It needs hazard_accel. Runs and bundles from before read back 0.
+    # 0.05 or 0.1 m clear that collision, but at 1.5x the cylinders' speed they cost 4-10 points of success and more
+    # collision episodes, so no shipped policy stores it. Not scaled to the drone (a distance). It needs hazard_accel.
+    # Runs and bundles from before read back 0.
     moving_margin: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
