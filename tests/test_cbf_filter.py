@@ -261,6 +261,39 @@ def test_moving_margin_widens_the_moving_cylinders_rows_alone_hand_derived():
     assert SafetyFilterConfig(moving_margin=0.1).fitted(0.5, 0.2).moving_margin == 0.1  # a distance: not scaled
 
 
+def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
+    """moving_margin_time 0.05 s on the scene above, the drone flying (−1, −1) m/s: it closes on the moving cylinder
+    (at the origin, (1, 0) m/s) at −n · (v − v_c) = 3/√2 m/s, so that row keeps 0.05 · 3/√2 m more (b + 0.8 of it);
+    the static cylinder (which the drone closes on too) and the floor keep theirs; flying away (closing < 0) nothing
+    changes; numpy and JAX agree; the config needs the bounds."""
+    R, r, margin, lag, a, T = 0.2, 0.05, 0.05, 0.3, 2.0, 0.05
+    pos, vel = np.array([0.5, 0.5, 1.0]), np.array([-1.0, -1.0, 0.0])
+    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
+    accel, present = np.array([a, 0.0]), np.ones(2, bool)
+    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
+    args = (pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none, np.array([2.0]))
+    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(accel, lag),
+              moving_gain_max=0.8)
+    plain = barriers._barrier_parts(*args, **kw)
+    timed = barriers._barrier_parts(*args, moving_margin_time=T, **kw)
+    extra = T * 3.0 / np.sqrt(2.0)
+    d = np.sqrt(0.5)
+    np.testing.assert_allclose(timed[0].h, [d - (R + r + margin + extra), 0.6 - (R + r + margin)], atol=1e-9)
+    np.testing.assert_allclose(timed[0].b, plain[0].b + [0.8 * extra, 0.0], atol=1e-9)
+    np.testing.assert_allclose(timed[2].b, plain[2].b, atol=1e-12)
+    away = (pos, -vel, *args[2:])
+    np.testing.assert_allclose(barriers._barrier_parts(*away, moving_margin_time=T, **kw)[0].b,
+                               barriers._barrier_parts(*away, **kw)[0].b, atol=1e-12)
+    with jax.enable_x64(True):
+        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), moving_margin_time=T,
+                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
+    np.testing.assert_allclose(np.asarray(got.b), timed[0].b, atol=1e-12)
+    with pytest.raises(ValueError, match=r"moving_margin_time=0.05 with hazard_accel=false: allowed: 0, or hazard"):
+        SafetyFilterConfig(moving_margin_time=0.05, hazard_accel=False)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.moving_margin_time=-1: allowed: >= 0"):
+        SafetyFilterConfig(moving_margin_time=-1)
+
+
 def test_neighbour_rows_split_the_pair_condition():
     rng = np.random.default_rng(6)
     p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
@@ -873,6 +906,63 @@ def test_a_gate_braking_drone_stops_short_of_a_bar_in_the_command_limits_double_
     assert lowest < 0.0
 
 
+def test_wall_braking_rows_hand_derived():
+    """A drone 2.2 m from the arena's x-high wall (r_d + margin = 0.2: h = 2) flying at it at 2 m/s, gain 2 /s:
+    n = −x, B = √(2·3·2) − 2 and the braking row is −u_x ≥ −2 − dt (√(3/4) (−2) + γ B) = −2.048, above the velocity
+    row's −γ h = −4, so it binds. 0.8 m off (h = 0.6) at 1.5 m/s the braking row's −1.5 − dt (√(3/1.2) (−1.5) +
+    γ (√3.6 − 1.5)) = −1.437 lies below the velocity row's −1.2, which binds there. Moving along the wall changes
+    nothing (a plane's normal does not turn); the y-high wall, 4.8 m off, sees the command's y part alone."""
+    gamma, dt = 2.0, 0.04
+    for x_gap, speed, want in ((2.2, 2.0, -2.0 - dt * (np.sqrt(0.75) * -2.0 + gamma * (np.sqrt(12.0) - 2.0))),
+                               (0.8, 1.5, -gamma * 0.6)):
+        clearance = np.array([15.0, x_gap, 5.0, 5.0, 2.0])  # x low, x high, y low, y high, ceiling
+        for cmd in ([speed, 0.0, 0.0], [speed, 0.7, -0.3]):
+            for xp in (np, jnp):
+                rows = barriers.wall_rows(xp.asarray(clearance), gamma, drone_radius=0.05, margin=0.15,
+                                          braking=(xp.asarray(cmd), 3.0, dt))
+                np.testing.assert_allclose(np.asarray(rows.h), clearance - 0.2, atol=1e-6)
+                np.testing.assert_allclose(np.asarray(rows.A), barriers.WALL_NORMALS, atol=1e-6)
+                np.testing.assert_allclose(np.asarray(rows.b)[1], want, rtol=1e-5)
+                y = 4.8  # h of the y-high wall, whose normal (−y) sees the command's y part
+                brake_y = -cmd[1] - dt * (np.sqrt(3.0 / (2 * y)) * -cmd[1] + gamma * (np.sqrt(6 * y) - cmd[1]))
+                b_y = max(-gamma * y, brake_y)
+                np.testing.assert_allclose(np.asarray(rows.b)[3], b_y, rtol=1e-5)
+    assert -2.0 - dt * (np.sqrt(0.75) * -2.0 + gamma * (np.sqrt(12.0) - 2.0)) == pytest.approx(-2.0478, abs=1e-4)
+    near = -1.5 - dt * (np.sqrt(3.0 / 1.2) * -1.5 + gamma * (np.sqrt(3.6) - 1.5))
+    assert near == pytest.approx(-1.4369, abs=1e-4) and near < -gamma * 0.6
+    plain = barriers.wall_rows(clearance, gamma, drone_radius=0.05, margin=0.15)
+    np.testing.assert_allclose(plain.b, -gamma * (clearance - 0.2))
+
+
+def test_a_wall_braking_drone_stops_short_of_the_wall_in_the_command_limits_double_integrator():
+    """A drone flying +x at 2 m/s, 1.5 m from the arena's x-high wall, nominal command 2 m/s on, gain 5/s, the
+    command limit 3 m/s² (0.12 m/s per 40 ms step) after the filter: the wall's velocity row lets it close at 5 h m/s
+    and brakes too late, so it leaves the arena; with the walls' braking rows it stops before the margin."""
+    r, dt, step, wall = 0.06, 0.04, 0.12, 1.5
+    layout = ObsLayout(num_cylinders=0, num_neighbours=0)
+    own = layout.own_slices
+    safety = SafetyFilterConfig(margin=0.05, wall_braking=True, reachable_box=False)
+
+    def fly(cfg):
+        x, now, lowest = 0.0, np.array([2.0, 0.0, 0.0]), np.inf
+        for _ in range(100):
+            obs = np.zeros((1, layout.size))
+            obs[0, own["altitude"]] = 1.0
+            obs[0, own["vel"]] = now
+            obs[0, own["wall_clearance"]] = [50.0, wall - x, 50.0, 50.0, 2.0]
+            res = np_cbf.filter_from_obs(layout, obs, np.array([[2.0, 0.0, 0.0]]), np.array([5.0]), 2.0, r, cfg,
+                                         0.3, 0.05, applied=now[None], command_rate=(3.0, dt))
+            now = np.clip(res.u[0], now - step, now + step)
+            x = x + dt * now[0]
+            lowest = min(lowest, wall - x)
+        return lowest, now
+
+    lowest, now = fly(safety)
+    assert lowest > r + 0.05 - 0.01 and np.abs(now).max() < 0.01
+    lowest, _ = fly(dataclasses.replace(safety, wall_braking=False))
+    assert lowest < 0.0
+
+
 def test_neighbour_braking_row_hand_derived():
     """Two drones' look-ahead points on the x axis, this one at the origin and the neighbour 0.5 m beyond the pair's
     distance (h = 0.5) flying at it at s m/s while this one hovers, command limit 3 m/s² each, dt 0.04 s, share 1/2:
@@ -1214,6 +1304,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
     assert from_manifest(old).proximity_slack == 0.0 and from_manifest(old).moving_margin == 0.0
+    assert from_manifest(old).moving_margin_time == 0.0
     # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race, the
     # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44; new runs 0.5.
     from aswarm.analysis import evaluate
@@ -1227,7 +1318,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         # Slack weighed by nearness: the dynamic (session 44) and the race (session 45) policies' stored filters.
         assert stored.proximity_slack == (1.0 if name in ("pretrained", "pretrained:dynamic") else 0.0), name
         # A margin for what moves (session 46): an option, stored by no shipped policy (it cost the 1.5x cells).
-        assert stored.moving_margin == 0.0, name
+        assert stored.moving_margin == 0.0 and stored.moving_margin_time == 0.0, name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):
@@ -1239,6 +1330,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert from_manifest(json.loads(json.dumps(manifest_fields(second)))) == second
     assert from_manifest(old).lookahead_accel == 0.0 and from_manifest(old).gate_braking is False
     assert SafetyFilterConfig(gate_braking=True).brakes((3.0, 0.04)) and not SafetyFilterConfig().brakes((3.0, 0.04))
+    assert SafetyFilterConfig(wall_braking=True).brakes((3.0, 0.04)) and from_manifest(old).wall_braking is False
     with pytest.raises(ValueError, match=r"lookahead_accel=0.039 with lookahead_xy=0.0: allowed: lookahead_accel 0, "
                                          r"or lookahead_xy > 0"):
         SafetyFilterConfig(lookahead_accel=0.039)

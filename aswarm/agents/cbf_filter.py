@@ -286,7 +286,8 @@ def filter_from_obs(layout, obs: jax.Array, cmd: jax.Array, gain: jax.Array, u_m
     ``applied`` [..., n, 3] the commands the drones fly now and ``command_rate`` = (command acceleration limit m/s²,
     control period s), where ``safety.brakes``: the QP chooses among the commands the limit lets the drone reach this
     step (``cmd`` first moved into that box, as the drone would take it), and the cylinders' rows (``braking``), the
-    neighbours' (``neighbour_braking``) or the gate frames' (``gate_braking``) are the braking barriers of ``obs_rows``.
+    neighbours' (``neighbour_braking``), the gate frames' (``gate_braking``) or the walls' (``wall_braking``) are the
+    braking barriers of ``obs_rows``.
     """
     whole_swarm = barriers.sees_whole_swarm(layout, obs)
 

@@ -272,12 +272,27 @@ def floor_row(pos, gamma, *, z_min: float) -> Rows:
     return Rows(_rows_like(h, ((0.0, 0.0, 1.0),)), -gamma * h, xp.ones(h.shape, dtype=bool), h)
 
 
-def wall_rows(clearance, gamma, *, drone_radius: float, margin: float = 0.0) -> Rows:
+def wall_rows(clearance, gamma, *, drone_radius: float, margin: float = 0.0, braking: tuple | None = None) -> Rows:
     """Rows for the arena's 4 side walls and its ceiling: ``clearance`` [..., 5] is the drone centre's distance
-    to each (x low, x high, y low, y high, ceiling), h = clearance − (r_d + margin), ∇h the inward normal."""
+    to each (x low, x high, y low, y high, ceiling), h = clearance − (r_d + margin), ∇h the inward normal.
+
+    ``braking`` = (cmd [..., 3], decel, dt): each wall's row also holds its braking barrier, :func:`gate_rows`' for a
+    plane, whose normal does not turn: B = √(2 decel h) + n · cmd ≥ 0 and Ḃ ≥ −γ B give
+    n · u ≥ n · cmd − dt (√(decel / 2h) n · cmd + γ B). Both rows share the normal, so the row takes the larger b:
+    the braking barrier binds far off, where a fast drone must start braking, and the velocity row near, where √h
+    would let the drone close at a speed only exact braking takes back (alone, the braking rows let the 1.5x moving
+    cells' drones out of the arena 64 and 70 times as often as the velocity rows, README).
+    """
     xp = geometry.namespace(clearance)
     h = clearance - (drone_radius + margin)
-    return Rows(_rows_like(h, WALL_NORMALS), -gamma * h, xp.ones(h.shape, dtype=bool), h)
+    A = _rows_like(h, WALL_NORMALS)
+    present = xp.ones(h.shape, dtype=bool)
+    if braking is None:
+        return Rows(A, -gamma * h, present, h)
+    cmd, decel, dt = braking
+    n_c = xp.sum(A * cmd[..., None, :], axis=-1)
+    speed, slope = _braking_speed(h, decel)
+    return Rows(A, xp.maximum(-gamma * h, n_c - dt * (slope * n_c + gamma * (speed + n_c))), present, h)
 
 
 def gate_rows(pos, gate_center, gate_normal, present, gamma, *, half_opening: float, bar: float,
@@ -335,10 +350,12 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
                    drone_radius: float, margin: float, floor_z: float, neighbour_share, neighbour_reference=1.0,
                    neighbour_release: float = 0.0, cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
                    nbr_braking: tuple | None = None, moving_gain_max: float = 0.0,
-                   moving_margin: float = 0.0) -> list[Rows]:
+                   moving_margin: float = 0.0, moving_margin_time: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
     ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
-    ones) take at most that gain, and with ``moving_margin`` > 0 (m) keep that much more than ``margin``.
+    ones) take at most that gain, and with ``moving_margin`` > 0 (m) keep that much more than ``margin``;
+    ``moving_margin_time`` > 0 (s) adds that many seconds of the drone's closing speed on each moving cylinder
+    (max(0, −n · (v − v_c)), v the drone's velocity: the margin is a state's, the row stays linear in u).
     ``cyl_braking`` = (cmd, decel, dt, lag) makes the cylinders' rows braking barriers (None: velocity rows);
     ``nbr_braking`` = (cmd, decel, dt, gain) adds the neighbours' braking rows as a fourth part, beside their
     velocity rows, with that class-K gain (1/s; 0: the neighbours' rows' own)."""
@@ -361,6 +378,10 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
     cyl_margin = margin
     if moving_margin > 0 and cyl_motion is not None:  # (static, as the gain cap above)
         cyl_margin = margin + (cyl_motion[0] > 0) * xp.asarray(moving_margin, dtype=pos.dtype)
+    if moving_margin_time > 0 and cyl_motion is not None:  # (static, as above)
+        _, n_xy = unit(pos[..., None, :2] - cyl_center)
+        closing = xp.maximum(-xp.sum(n_xy * (vel[..., None, :2] - cyl_vel), axis=-1), 0.0)
+        cyl_margin = cyl_margin + (cyl_motion[0] > 0) * (xp.asarray(moving_margin_time, dtype=pos.dtype) * closing)
     if cyl_braking is None:
         cyl = cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
                             margin=cyl_margin, motion=cyl_motion)
@@ -384,7 +405,7 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
 def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half_opening: float = 0.0,
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
-             moving_gain_max: float = 0.0, moving_margin: float = 0.0,
+             moving_gain_max: float = 0.0, moving_margin: float = 0.0, moving_margin_time: float = 0.0,
              brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0,
              closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0,
@@ -420,12 +441,14 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     ``moving_gain_max`` > 0 (1/s): the rows of the cylinders whose bound is > 0 take at most this gain (a gain per
     hazard: conservative towards what moves); it needs ``cyl_accel``. ``moving_margin`` > 0 (m): those cylinders'
     rows keep that much more clearance than ``margin`` (their barrier binds that much sooner); it needs ``cyl_accel``.
+    ``moving_margin_time`` > 0 (s): and that many seconds of the drone's closing speed on each of them more.
 
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
     2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
-    ``brake`` = (cylinders, neighbours[, gate frames]): which groups take braking rows when ``braking`` is given. The
-    cylinders' and the gate frames' (:func:`gate_rows`' braking form) replace their velocity rows; the neighbours'
+    ``brake`` = (cylinders, neighbours[, gate frames[, walls]]): which groups take braking rows when ``braking`` is
+    given. The cylinders', the gate frames' and the walls' (:func:`gate_rows`' and :func:`wall_rows`' braking forms)
+    replace their velocity rows; the neighbours'
     (:func:`neighbour_braking_rows`) come on top of theirs, as K more rows after the previous gate's: the braking
     barrier bounds the closing speed from afar, where the velocity rows do not see it coming, and the velocity rows
     hold near, where the braking barrier's √h lets a pair close at a speed only exact braking on both sides would
@@ -491,11 +514,13 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
                             neighbour_release=neighbour_release, cyl_motion=motion,
                             cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
                             nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
-                            moving_gain_max=moving_gain_max, moving_margin=moving_margin)
+                            moving_gain_max=moving_gain_max, moving_margin=moving_margin,
+                            moving_margin_time=moving_margin_time)
     points, after = points[:3], points[3:]  # after: the neighbours' braking rows, if any, go last
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
-    walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin)
+    wall_braking = braking if braking is not None and len(brake) > 3 and brake[3] else None
+    walls = wall_rows(clearance, gamma, drone_radius=drone_radius, margin=margin, braking=wall_braking)
     gate_braking = None
     if braking is not None and len(brake) > 2 and brake[2]:  # (cmd, decel, dt), cmd shaped as the gates' points
         gate_braking = (braking[0][..., None, :] if numpy else braking[0], braking[1], braking[2])
@@ -527,8 +552,8 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     gate_half_opening=gate_half_opening, gate_bar=gate_bar, floor_z=safety.floor_z,
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
-                    moving_margin=safety.moving_margin,
-                    brake=(safety.braking, safety.neighbour_braking, safety.gate_braking),
+                    moving_margin=safety.moving_margin, moving_margin_time=safety.moving_margin_time,
+                    brake=(safety.braking, safety.neighbour_braking, safety.gate_braking, safety.wall_braking),
                     braking_gain=safety.neighbour_braking_gain,
                     lookahead_accel=safety.lookahead_accel,
                     closing_split=((safety.closing_split, safety.closing_share_min)

@@ -71,6 +71,13 @@ class SafetyFilterConfig:
     # drone's speed towards a bar must leave room to brake at the command limit. Independent of the two above; any
     # of the three puts the QP on the reachable commands (reachable_box). Runs and bundles from before: false.
     gate_braking: bool = False
+    # Braking barriers for the arena's walls and ceiling, each wall's row the tighter of it and its velocity row
+    # (aswarm.core.barriers.wall_rows): a drone that fled a fast cylinder towards a wall must still be able to stop
+    # before it at the command limit (the 1.5x moving cells' arena exits: the wall's velocity row turned negative with
+    # the QP feasible, the flown command 1-2 m/s behind the filter's). On pretrained:dynamic at 1.5x it left no fewer
+    # exits and cost 4-7 points of success (README, "braking rows for the walls"), so nothing stores it. Puts the QP
+    # on the reachable commands as the three above do (reachable_box). Runs and bundles from before: false.
+    wall_braking: bool = False
     # With braking or neighbour_braking: the QP chooses among the commands the drone can reach this step (the command
     # limit's box around the command it flies now). False: the rows alone, the limit applying after the filter as
     # it does without braking rows. At a braking gain of 10/s the box made two firmware drones head on stop apart on
@@ -113,6 +120,12 @@ class SafetyFilterConfig:
     # collision episodes, so no shipped policy stores it. Not scaled to the drone (a distance). It needs hazard_accel.
     # Runs and bundles from before read back 0.
     moving_margin: float = 0.0
+    # s: the moving cylinders' rows also keep this many seconds of the drone's closing speed on each (max(0, closing
+    # speed) x this, m): the margin the command limit needs grows with how fast the drone and the cylinder close, so
+    # a margin that only a closing pair keeps. 0.04 s clears dynamic-2's collision at no mission time but is no clear
+    # gain at 1.5x (README), so no shipped policy stores it. Not scaled to the drone. It needs hazard_accel. Runs and
+    # bundles from before read back 0.
+    moving_margin_time: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     # m/s: > 0 splits each pair of drones by how fast each one closes on the other (its velocity towards the other),
@@ -163,12 +176,12 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("moving_gain_max", "moving_margin", "neighbour_braking_gain", "margin", "lookahead_xy",
-                     "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near",
+        for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "neighbour_braking_gain", "margin",
+                     "lookahead_xy", "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near",
                      "closing_split", "neighbour_release", "proximity_slack"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
-        for name in ("moving_gain_max", "moving_margin"):
+        for name in ("moving_gain_max", "moving_margin", "moving_margin_time"):
             if getattr(self, name) > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r} with hazard_accel=false: "
                                  "allowed: 0, or hazard_accel=true")
@@ -187,8 +200,8 @@ class SafetyFilterConfig:
     def brakes(self, command_rate: tuple[float, float] | None) -> bool:
         """Whether the filter takes braking rows (and, with ``reachable_box``, the reachable box) for a drone whose
         command changes at most ``command_rate[0]`` m/s² (every ``command_rate[1]`` s): ``braking``,
-        ``neighbour_braking`` or ``gate_braking`` on and a limit to brake at (none: no)."""
-        return bool((self.braking or self.neighbour_braking or self.gate_braking) and command_rate
+        ``neighbour_braking``, ``gate_braking`` or ``wall_braking`` on and a limit to brake at (none: no)."""
+        return bool((self.braking or self.neighbour_braking or self.gate_braking or self.wall_braking) and command_rate
                     and command_rate[0] > 0)
 
     def fitted(self, lag_xy: float, lag_z: float) -> SafetyFilterConfig:
@@ -211,7 +224,7 @@ class SafetyFilterConfig:
 
 # The config's true/false fields; every other field is a number.
 _FLAGS = ("fit_to_drone", "fit_lookahead", "hazard_accel", "braking", "neighbour_braking", "gate_braking",
-          "reachable_box", "escape")
+          "wall_braking", "reachable_box", "escape")
 
 
 # s: the velocity lag of the drone the default gains were tuned on (the geometric controller's, 63 % of a step)
@@ -256,8 +269,10 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
     safety = {"fit_to_drone": False, "fit_lookahead": False, "lookahead_xy": 0.0, "lookahead_z": 0.0,
               "lookahead_accel": 0.0,
               "lookahead_scale": 1.0, "hazard_accel": False, "static_slack": 1.0, "braking": False,
-              "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "reachable_box": True,
+              "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "wall_braking": False,
+              "reachable_box": True,
               "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, "moving_gain_max": 0.0, "moving_margin": 0.0,
+              "moving_margin_time": 0.0,
               "closing_split": 0.0, "closing_share_min": 0.1,
               "neighbour_reference": 1.0, "neighbour_release": 0.0, "proximity_slack": 0.0, "proximity_slack_min": 0.1,
               **safety}

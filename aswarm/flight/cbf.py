@@ -459,8 +459,8 @@ def filter_from_obs(layout: ObsLayout, obs: np.ndarray, cmd: np.ndarray, gain: n
     margin, neighbour share, floor height and the QP's settings from ``safety``; ``cyl_accel`` [..., M] (per swarm,
     m/s²) the cylinders' acceleration bounds, used where ``safety.hazard_accel``; ``applied`` [..., n, 3] the commands
     the drones fly now and ``command_rate`` (command acceleration limit, control period), used where
-    ``safety.braking``, ``safety.neighbour_braking`` or ``safety.gate_braking``: the reachable box and the braking
-    rows, as there.
+    ``safety.brakes`` (``braking``, ``neighbour_braking``, ``gate_braking`` or ``wall_braking``): the reachable box
+    and the braking rows, as there.
     """
     obs = np.asarray(obs, np.float64)
     braking = box = None
