@@ -447,8 +447,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
     2: the drone's speed towards a cylinder must leave room to brake at the limit), None the velocity rows above.
     ``brake`` = (cylinders, neighbours[, gate frames[, walls]]): which groups take braking rows when ``braking`` is
-    given. The cylinders', the gate frames' and the walls' (:func:`gate_rows`' and :func:`wall_rows`' braking forms)
-    replace their velocity rows; the neighbours'
+    given. The cylinders' and the gate frames' (:func:`gate_rows`' braking form) replace their velocity rows, the
+    walls' (:func:`wall_rows`') make each wall's row the tighter of the two; the neighbours'
     (:func:`neighbour_braking_rows`) come on top of theirs, as K more rows after the previous gate's: the braking
     barrier bounds the closing speed from afar, where the velocity rows do not see it coming, and the velocity rows
     hold near, where the braking barrier's √h lets a pair close at a speed only exact braking on both sides would
