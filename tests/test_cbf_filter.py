@@ -228,18 +228,26 @@ def test_moving_gain_cap_is_a_gain_per_hazard_hand_derived():
     np.testing.assert_allclose(np.asarray(got.b), cyl.b, atol=1e-12)
 
 
+def _moving_and_static_cylinders(vel):
+    """The scene of the gain cap's test for the margins' tests: (R, r, margin, lag, a), the ``_barrier_parts``
+    arguments for a drone at (0.5, 0.5, 1) flying ``vel``, and its keywords (the cap 0.8 /s, the bounds (a, 0))."""
+    R, r, margin, lag, a = 0.2, 0.05, 0.05, 0.3, 2.0
+    pos = np.array([0.5, 0.5, 1.0])
+    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
+    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
+    args = (pos, np.asarray(vel, float), centers, np.full(2, R), vels, np.ones(2, bool), nbr, nbr, none,
+            np.array([2.0]))
+    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(np.array([a, 0.0]), lag),
+              moving_gain_max=0.8)
+    return (R, r, margin, lag, a), args, kw
+
+
 def test_moving_margin_widens_the_moving_cylinders_rows_alone_hand_derived():
     """The scene above with moving_margin 0.1 m: the moving cylinder's barrier is h − 0.1 and its row b + γ 0.1 (here
     with the cap's 0.8 /s), the static one's and the floor's unchanged; numpy and JAX agree; in the config it needs
     the bounds that tell a moving cylinder, as the cap does."""
-    R, r, margin, lag, a, extra = 0.2, 0.05, 0.05, 0.3, 2.0, 0.1
-    pos, vel = np.array([0.5, 0.5, 1.0]), np.zeros(3)
-    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
-    accel, present = np.array([a, 0.0]), np.ones(2, bool)
-    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
-    args = (pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none, np.array([2.0]))
-    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(accel, lag),
-              moving_gain_max=0.8)
+    (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders(np.zeros(3))
+    extra, accel = 0.1, kw["cyl_motion"][0]
     plain = barriers._barrier_parts(*args, **kw)
     wide = barriers._barrier_parts(*args, moving_margin=extra, **kw)
     d = np.sqrt(0.5)
@@ -266,14 +274,8 @@ def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
     (at the origin, (1, 0) m/s) at −n · (v − v_c) = 3/√2 m/s, so that row keeps 0.05 · 3/√2 m more (b + 0.8 of it);
     the static cylinder (which the drone closes on too) and the floor keep theirs; flying away (closing < 0) nothing
     changes; numpy and JAX agree; the config needs the bounds."""
-    R, r, margin, lag, a, T = 0.2, 0.05, 0.05, 0.3, 2.0, 0.05
-    pos, vel = np.array([0.5, 0.5, 1.0]), np.array([-1.0, -1.0, 0.0])
-    centers, vels = np.array([[0.0, 0.0], [1.1, 0.5]]), np.array([[1.0, 0.0], [0.0, 0.0]])
-    accel, present = np.array([a, 0.0]), np.ones(2, bool)
-    nbr, none = np.zeros((1, 3)), np.zeros(1, bool)
-    args = (pos, vel, centers, np.full(2, R), vels, present, nbr, nbr, none, np.array([2.0]))
-    kw = dict(drone_radius=r, margin=margin, floor_z=0.0, neighbour_share=0.5, cyl_motion=(accel, lag),
-              moving_gain_max=0.8)
+    (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders([-1.0, -1.0, 0.0])
+    T, accel, pos, vel = 0.05, kw["cyl_motion"][0], args[0], args[1]
     plain = barriers._barrier_parts(*args, **kw)
     timed = barriers._barrier_parts(*args, moving_margin_time=T, **kw)
     extra = T * 3.0 / np.sqrt(2.0)
