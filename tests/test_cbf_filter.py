@@ -270,20 +270,21 @@ def test_moving_margin_widens_the_moving_cylinders_rows_alone_hand_derived():
 
 
 def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
-    """moving_margin_time 0.05 s on the scene above, the drone flying (−1, −1) m/s: it closes on the moving cylinder
-    (at the origin, (1, 0) m/s) at −n · (v − v_c) = 3/√2 m/s, so that row keeps 0.05 · 3/√2 m more (b + 0.8 of it);
-    the static cylinder (which the drone closes on too) and the floor keep theirs; flying away (closing < 0) nothing
-    changes; numpy and JAX agree; the config needs the bounds."""
-    (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders([-1.0, -1.0, 0.0])
-    T, accel, pos, vel = 0.05, kw["cyl_motion"][0], args[0], args[1]
+    """moving_margin_time 0.05 s on the scene above, the drone flying (1, −1) m/s: it closes on the moving cylinder
+    (at the origin, (1, 0) m/s) at −n · (v − v_c) = 1/√2 m/s, so that row keeps 0.05/√2 m more (b + 0.8 of it); the
+    static cylinder, which it closes on at 1 m/s, and the floor keep theirs; flying (1, 1) m/s, which opens the gap
+    to the moving cylinder (n · (v − v_c) = 1/√2 > 0), nothing changes; numpy and JAX agree; the config needs the
+    bounds."""
+    (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders([1.0, -1.0, 0.0])
+    T, accel = 0.05, kw["cyl_motion"][0]
     plain = barriers._barrier_parts(*args, **kw)
     timed = barriers._barrier_parts(*args, moving_margin_time=T, **kw)
-    extra = T * 3.0 / np.sqrt(2.0)
+    extra = T / np.sqrt(2.0)
     d = np.sqrt(0.5)
     np.testing.assert_allclose(timed[0].h, [d - (R + r + margin + extra), 0.6 - (R + r + margin)], atol=1e-9)
     np.testing.assert_allclose(timed[0].b, plain[0].b + [0.8 * extra, 0.0], atol=1e-9)
     np.testing.assert_allclose(timed[2].b, plain[2].b, atol=1e-12)
-    away = (pos, -vel, *args[2:])
+    away = (args[0], np.array([1.0, 1.0, 0.0]), *args[2:])
     np.testing.assert_allclose(barriers._barrier_parts(*away, moving_margin_time=T, **kw)[0].b,
                                barriers._barrier_parts(*away, **kw)[0].b, atol=1e-12)
     with jax.enable_x64(True):
