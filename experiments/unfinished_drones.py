@@ -82,6 +82,20 @@ def gate_sides(pos: np.ndarray, target: np.ndarray, gate_pos: np.ndarray, gate_y
     return np.sum(forward & ~inside, axis=0), side
 
 
+def sweep_gap(pos: np.ndarray, center: np.ndarray, axis: np.ndarray, amplitude: np.ndarray, radius: np.ndarray,
+              present: np.ndarray, drone_radius: float) -> float:
+    """Surface gap (m) from a drone at ``pos`` [3] to the nearest moving cylinder's swept band (the segment its centre
+    sweeps, ``center`` ± ``amplitude`` ``axis`` [M, 2], widened by its radius): how far it waits from where a
+    cylinder can be. inf without a moving cylinder."""
+    moving = (amplitude > 0) & present
+    if not moving.any():
+        return float("inf")
+    rel = pos[None, :2] - center[moving]
+    along = np.clip(np.sum(rel * axis[moving], -1), -amplitude[moving], amplitude[moving])
+    off = rel - along[:, None] * axis[moving]
+    return float(np.min(np.linalg.norm(off, axis=-1) - radius[moving] - drone_radius))
+
+
 def failed_episodes(agent, restored, episodes: int, key) -> np.ndarray:
     """Indices of the episodes that did not succeed when ``episodes`` of ``key`` fly as one batch (``aswarm eval``)."""
     from aswarm.analysis import evaluate
@@ -161,9 +175,13 @@ def main(argv: list[str] | None = None) -> int:
             where = (f", {side[-1, r['drone']]:+.2f} m from gate {int(ep.target[-1, r['drone']])}'s plane "
                      "(+: past it, not passed)" if track else "")
             far_side += int(track and side[-1, r["drone"]] > 0)
+            lay = ep.layout
+            band = sweep_gap(r["pos"], lay.cyl_center, lay.cyl_axis, lay.cyl_amplitude, lay.cyl_radius,
+                             lay.cyl_present, ep.drone_radius)
+            waits = f", {band:.2f} m from a moving cylinder's swept band" if np.isfinite(band) else ""
             print(f"  drone {r['drone']} (line {line}): at {np.round(r['pos'], 2)}, goal {np.round(r['goal'], 2)}, "
                   f"{r['gap']:.2f} m short{where}, nearest flying drone {r['nearest']:.2f} m, moved "
-                  f"{r['moved']:.2f} m in the last {STILL_WINDOW_S:.0f} s")
+                  f"{r['moved']:.2f} m in the last {STILL_WINDOW_S:.0f} s{waits}")
     print("unfinished drones of the episodes without a collision, by start line (0 = front): "
           + (", ".join(f"line {k}: {v}" for k, v in sorted(by_line.items())) or "none"))
     if track:

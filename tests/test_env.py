@@ -316,6 +316,37 @@ def test_cost_rises_inside_the_safety_margin():
     assert 0.5 < float(s.cost[0]) < 0.8 and not bool(s.tracker.collided[0])
 
 
+@pytest.mark.parametrize("direction", [-1.0, 1.0])
+def test_moving_cost_horizon_counts_where_the_cylinder_will_be(direction):
+    # One cylinder 0.9 m (surface gap) ahead of the hovering drone along x, sweeping along x with amplitude 0.8 m
+    # and omega = pi /s from phase 0: its centre at time t is x0 + direction * 0.8 sin(pi t). Coming at the drone
+    # (direction -1) it turns back 0.1 m off at t = 0.5 s, inside the 0.5 s horizon after the first step (t = 0.04)
+    # and inside the 0.15 m margin, so the cost is (0.15 - gap) / 0.15, where now (0.8 m) and 0.2 s ahead
+    # (0.9 - 0.8 sin(0.24 pi) = 0.35 m) it is 0. Going away (direction +1) nothing is inside the margin.
+    costs = {}
+    for horizon in (0.0, 0.2, 0.5):
+        env = envs.make("obstacles", num_agents=1, num_obstacles=1, layout_jitter=0.0, randomize=OFF,
+                        moving_cost_horizon=horizon)
+        s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+        reach = env.config.obstacle_radius + env.config.cf.collision_radius
+        x0 = s.layout.start_pos[0, 0] + 0.9 + reach
+        s = s.replace(layout=s.layout.replace(
+            cyl_center=jnp.array([[x0, s.layout.start_pos[0, 1]]]), cyl_axis=jnp.array([[direction, 0.0]]),
+            cyl_amplitude=jnp.array([0.8]), cyl_omega=jnp.array([math.pi]), cyl_phase=jnp.array([0.0])))
+        s = jax.jit(env.step)(s, jnp.zeros((1, 3)))
+        costs[horizon] = float(s.cost[0])
+        t, pos = float(s.data.time), np.asarray(s.data.qpos[:2], np.float64)
+    assert not bool(s.tracker.collided[0])
+    assert abs(t - 0.04) < 1e-6
+    gap = math.hypot(x0 - 0.8 - pos[0], float(s.layout.start_pos[0, 1]) - pos[1]) - reach  # at the turn
+    if direction < 0:
+        assert 0.09 < gap < 0.11  # the drone hovers (it moved under 1 cm)
+        np.testing.assert_allclose(costs[0.5], (0.15 - gap) / 0.15, atol=2e-3)
+    else:
+        assert costs[0.5] == 0.0
+    assert costs[0.0] == 0.0 and costs[0.2] == 0.0
+
+
 # --------------------------------------------------------------- bad input
 @pytest.mark.parametrize(
     "name,overrides,message",
@@ -334,6 +365,7 @@ def test_cost_rises_inside_the_safety_margin():
         ("obstacles", {"min_obstacle_gap": -0.1}, r"invalid min_obstacle_gap=-0.1: must be >= 0"),
         ("race", {"command_rate_penalty": -0.5}, r"invalid command_rate_penalty=-0.5: must be >= 0"),
         ("race", {"command_accel_limit": -3.0}, r"invalid command_accel_limit=-3.0: must be >= 0"),
+        ("dynamic", {"moving_cost_horizon": -0.5}, r"invalid moving_cost_horizon=-0.5: must be >= 0"),
         ("dynamic", {"max_moving": 4},
          r"invalid max_moving=4: allowed: -1 \(num_moving\) or min_moving=1 to num_moving=3"),
         ("dynamic", {"min_moving": 2, "max_moving": 1},

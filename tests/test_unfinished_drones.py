@@ -68,3 +68,17 @@ def test_bad_only_gets_a_one_line_error(capsys):
         assert e.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()[-1]
         assert f"invalid --only={only!r}" in err and allowed in err
+
+
+def test_sweep_gap_by_hand():
+    # Cylinder 0 (radius 0.2) sweeps x in [-0.8, 0.8] at y = 0; cylinder 1 is static and cylinder 2 absent, both
+    # nearer. A drone (radius 0.05) at (0.5, 1.0) is 1 m off the band's middle: 1 - 0.2 - 0.05; at (2.0, 0.0), 1.2
+    # m beyond the end of the sweep: 1.2 - 0.25.
+    center = np.array([[0.0, 0.0], [0.5, 1.1], [2.0, 0.1]])
+    axis = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
+    amplitude, radius = np.array([0.8, 0.0, 0.8]), np.full(3, 0.2)
+    present = np.array([True, True, False])
+    gap = _module().sweep_gap
+    np.testing.assert_allclose(gap(np.array([0.5, 1.0, 1.0]), center, axis, amplitude, radius, present, 0.05), 0.75)
+    np.testing.assert_allclose(gap(np.array([2.0, 0.0, 1.0]), center, axis, amplitude, radius, present, 0.05), 0.95)
+    assert gap(np.zeros(3), center, axis, np.zeros(3), radius, present, 0.05) == float("inf")

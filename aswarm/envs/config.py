@@ -132,6 +132,12 @@ class EnvConfig:
     wrong_side_clearance: float = 0.0
     paper_epsilon: float = 0.001  # r = 1 / (d + eps)
     safety_margin: float = 0.15  # m; the cost grows as clearance falls below it
+    # s, 0 = off. The cost also counts each drone's clearance to where the cylinders will be over this horizon
+    # (their scripted motion, sampled at the policy's period; the drone taken as staying put), so a drone that
+    # waits in a fast cylinder's path pays before the cylinder arrives rather than on the step the filter can no
+    # longer hold it (the 1.5x cells' collisions: README, "A cost on the cylinders' reach"). Training only: the
+    # cost shapes the penalty and the gain target, and neither the policy's nor the filter's inputs change.
+    moving_cost_horizon: float = 0.0
     cf: CrazyflieParams = CrazyflieParams()
     gains: ControllerGains = ControllerGains()  # controller "geometric"
     pid: FirmwarePid = FirmwarePid()  # controller "pid"; its thrust map also serves "mellinger"
@@ -196,7 +202,8 @@ def legacy_drone_stored() -> dict:
 ADDED_SINCE = {"command_rate_penalty": 0.0, "command_accel_limit": 0.0, "randomize.velocity_window": 0,
                "mellinger": dataclasses.asdict(FirmwareMellinger()), "reference_leash": EnvConfig.reference_leash,
                "max_moving": -1, "filter_neighbours": 0, "cf.motor_tau_down": 0.0,
-               "moving_speed_scale": (1.0, 1.0), "wrong_side_clearance": 0.0, "filter_neighbour_accel": False}
+               "moving_speed_scale": (1.0, 1.0), "wrong_side_clearance": 0.0, "filter_neighbour_accel": False,
+               "moving_cost_horizon": 0.0}
 
 
 def with_legacy_drone(env: dict) -> dict:
@@ -304,7 +311,7 @@ def validate(c: EnvConfig) -> None:
         if getattr(c, name) <= 0:
             _fail(name, getattr(c, name), "must be > 0")
     for name in ("lateral_weight", "wrong_side_weight", "wrong_side_clearance", "command_rate_penalty",
-                 "command_accel_limit"):
+                 "command_accel_limit", "moving_cost_horizon"):
         if getattr(c, name) < 0:
             _fail(name, getattr(c, name), "must be >= 0")
     if c.start_interval < 0:

@@ -289,6 +289,8 @@ class SwarmEnv:
             ob = ob.replace(reference=jnp.concatenate([ahead[None], ob.reference[:2]]))
 
         t = data.time
+        if cfg.moving_cost_horizon:  # (static: without it the program is the one it always was)
+            hazard = jnp.minimum(hazard, self._cylinder_reach(drones.pos, layout, t, tr.finished))
         newly_finished = tr.finished & ~tr0.finished
         newly_collided = tr.collided & ~tr0.collided
         passed = (tr.target - tr0.target).astype(jnp.float32)
@@ -454,6 +456,16 @@ class SwarmEnv:
             min_clearance=jnp.where(active, jnp.minimum(tr.min_clearance, c_cyl), tr.min_clearance),
         )
         return tr, jnp.where(active, jnp.min(gaps, -1), geo.FAR)
+
+    def _cylinder_reach(self, pos, layout: Layout, t, finished) -> jax.Array:
+        """Each drone's smallest clearance [n] to the cylinders at the next ``moving_cost_horizon`` s's policy
+        periods (their scripted motion), as if the drone stayed at ``pos``; FAR for drones that finished."""
+        cfg = self.config
+        k = max(1, int(np.ceil(cfg.moving_cost_horizon * cfg.policy_freq - 1e-6)))
+        cyl_pos, _ = cylinders_at(layout, t + cfg.moving_cost_horizon * jnp.arange(1, k + 1) / k)  # [k, M, 2]
+        gap = geo.cylinder_clearance(pos, cyl_pos, layout.cyl_radius, layout.cyl_height, layout.cyl_present,
+                                     cfg.cf.collision_radius)  # [k, n, M]
+        return jnp.where(finished, geo.FAR, jnp.min(gap, axis=(0, 2), initial=geo.FAR))
 
     def _observe(self, drones: DroneState, layout: Layout, tr: Tracker, t) -> jax.Array:
         """Every drone's observation [n, D] (:func:`aswarm.core.observation.observe`, as the flight runtime's), with
