@@ -87,13 +87,14 @@ def sweep_gap(pos: np.ndarray, center: np.ndarray, axis: np.ndarray, amplitude: 
     """Surface gap (m) from a drone at ``pos`` [3] to the nearest moving cylinder's swept band (the segment its centre
     sweeps, ``center`` ± ``amplitude`` ``axis`` [M, 2], widened by its radius): how far it waits from where a
     cylinder can be. inf without a moving cylinder."""
+    from aswarm.core.geometry import point_segment_distance
+
     moving = (amplitude > 0) & present
     if not moving.any():
         return float("inf")
-    rel = pos[None, :2] - center[moving]
-    along = np.clip(np.sum(rel * axis[moving], -1), -amplitude[moving], amplitude[moving])
-    off = rel - along[:, None] * axis[moving]
-    return float(np.min(np.linalg.norm(off, axis=-1) - radius[moving] - drone_radius))
+    reach = amplitude[moving, None] * axis[moving]
+    gap = point_segment_distance(pos[None, :2], center[moving] - reach, center[moving] + reach)
+    return float(np.min(gap - radius[moving] - drone_radius))
 
 
 def failed_episodes(agent, restored, episodes: int, key) -> np.ndarray:
