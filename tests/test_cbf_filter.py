@@ -297,6 +297,34 @@ def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
         SafetyFilterConfig(moving_margin_time=-1)
 
 
+def test_rail_speed_takes_the_bound_along_the_cylinders_velocity_hand_derived():
+    """rail_speed 0.5 m/s on the scene above (drone at (0.5, 0.5), hovering): the moving cylinder at the origin
+    moves along (1, 0) at 1 m/s, so its acceleration (bound 2 m/s²) acts along x alone and enters the row as
+    2 |n · (1, 0)| = 2/√2 where the whole bound entered before: b falls by 0.3 (2 − √2); the static cylinder's row
+    and the floor's are unchanged, and so are the gain cap's (0.8 /s) and h. Slower than rail_speed (1.5 m/s) the
+    whole bound stays; numpy and JAX agree; the config needs the bounds."""
+    (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders(np.zeros(3))
+    accel = kw["cyl_motion"][0]
+    plain = barriers._barrier_parts(*args, **kw)
+    rail = barriers._barrier_parts(*args, rail_speed=0.5, **kw)
+    np.testing.assert_allclose(rail[0].b, plain[0].b - [lag * (a - a / np.sqrt(2.0)), 0.0], atol=1e-12)
+    np.testing.assert_allclose(rail[0].h, plain[0].h, atol=1e-12)
+    np.testing.assert_allclose(rail[2].b, plain[2].b, atol=1e-12)
+    np.testing.assert_allclose(barriers._barrier_parts(*args, rail_speed=1.5, **kw)[0].b, plain[0].b, atol=1e-12)
+    # Beside the sweep (n across the motion) nothing of the bound is left: the drone at (0, 0.5).
+    beside = (np.array([0.0, 0.5, 1.0]), *args[1:])
+    np.testing.assert_allclose(barriers._barrier_parts(*beside, rail_speed=0.5, **kw)[0].b[0],
+                               barriers._barrier_parts(*beside, **kw)[0].b[0] - lag * a, atol=1e-12)
+    with jax.enable_x64(True):
+        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), rail_speed=0.5,
+                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
+    np.testing.assert_allclose(np.asarray(got.b), rail[0].b, atol=1e-12)
+    with pytest.raises(ValueError, match=r"rail_speed=0.2 with hazard_accel=false: allowed: 0, or hazard_accel"):
+        SafetyFilterConfig(rail_speed=0.2, hazard_accel=False)
+    with pytest.raises(ValueError, match=r"invalid safety_filter.rail_speed=-1: allowed: >= 0"):
+        SafetyFilterConfig(rail_speed=-1)
+
+
 def test_neighbour_rows_split_the_pair_condition():
     rng = np.random.default_rng(6)
     p_i, p_k = jnp.asarray(rng.normal(size=3), jnp.float32), jnp.asarray(rng.normal(size=3), jnp.float32)
@@ -1307,7 +1335,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert from_manifest(old).moving_gain_max == 0.0 and from_manifest(old).closing_split == 0.0
     assert from_manifest(old).neighbour_reference == 1.0 and from_manifest(old).neighbour_release == 0.0
     assert from_manifest(old).proximity_slack == 0.0 and from_manifest(old).moving_margin == 0.0
-    assert from_manifest(old).moving_margin_time == 0.0
+    assert from_manifest(old).moving_margin_time == 0.0 and from_manifest(old).rail_speed == 0.0
     # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race, the
     # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44; new runs 0.5.
     from aswarm.analysis import evaluate
@@ -1321,7 +1349,7 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
         # Slack weighed by nearness: the dynamic (session 44) and the race (session 45) policies' stored filters.
         assert stored.proximity_slack == (1.0 if name in ("pretrained", "pretrained:dynamic") else 0.0), name
         # A margin for what moves (session 46): an option, stored by no shipped policy (it cost the 1.5x cells).
-        assert stored.moving_margin == 0.0 and stored.moving_margin_time == 0.0, name
+        assert stored.moving_margin == 0.0 and stored.moving_margin_time == 0.0 and stored.rail_speed == 0.0, name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):

@@ -350,12 +350,15 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
                    drone_radius: float, margin: float, floor_z: float, neighbour_share, neighbour_reference=1.0,
                    neighbour_release: float = 0.0, cyl_motion: tuple | None = None, cyl_braking: tuple | None = None,
                    nbr_braking: tuple | None = None, moving_gain_max: float = 0.0,
-                   moving_margin: float = 0.0, moving_margin_time: float = 0.0) -> list[Rows]:
+                   moving_margin: float = 0.0, moving_margin_time: float = 0.0, rail_speed: float = 0.0) -> list[Rows]:
     """:func:`barrier_rows` before its concatenation: [cylinder rows, neighbour rows, floor row]; with
     ``moving_gain_max`` > 0 and ``cyl_motion``, the rows of the cylinders with an acceleration bound > 0 (the moving
     ones) take at most that gain, and with ``moving_margin`` > 0 (m) keep that much more than ``margin``;
     ``moving_margin_time`` > 0 (s) adds that many seconds of the drone's closing speed on each moving cylinder
-    (max(0, −n · (v − v_c)), v the drone's velocity: the margin is a state's, the row stays linear in u).
+    (max(0, −n · (v − v_c)), v the drone's velocity: the margin is a state's, the row stays linear in u);
+    ``rail_speed`` > 0 (m/s) takes each moving cylinder as moving on a straight line, its acceleration along its own
+    velocity: the bound enters as accel |n · v_c/|v_c|| where |v_c| is at least that speed (any direction below it,
+    where the observed velocity's direction is noise or the cylinder turns).
     ``cyl_braking`` = (cmd, decel, dt, lag) makes the cylinders' rows braking barriers (None: velocity rows);
     ``nbr_braking`` = (cmd, decel, dt, gain) adds the neighbours' braking rows as a fourth part, beside their
     velocity rows, with that class-K gain (1/s; 0: the neighbours' rows' own)."""
@@ -382,6 +385,12 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
         _, n_xy = unit(pos[..., None, :2] - cyl_center)
         closing = xp.maximum(-xp.sum(n_xy * (vel[..., None, :2] - cyl_vel), axis=-1), 0.0)
         cyl_margin = cyl_margin + (cyl_motion[0] > 0) * (xp.asarray(moving_margin_time, dtype=pos.dtype) * closing)
+    if rail_speed > 0 and cyl_motion is not None:  # (static, as above; after the cap and the margins, which the
+        # whole bound marks as moving)
+        _, n_xy = unit(pos[..., None, :2] - cyl_center)
+        speed, heading = unit(cyl_vel)
+        along = xp.where(speed >= rail_speed, xp.abs(xp.sum(n_xy * heading, axis=-1)), 1.0)
+        cyl_motion = (cyl_motion[0] * along, cyl_motion[1])
     if cyl_braking is None:
         cyl = cylinder_rows(pos, cyl_center, cyl_radius, cyl_vel, cyl_present, g_cyl, drone_radius=drone_radius,
                             margin=cyl_margin, motion=cyl_motion)
@@ -406,7 +415,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
              gate_bar: float = 0.0, floor_z: float = 0.0, neighbour_share=0.5,
              lookahead: tuple[float, float] = (0.0, 0.0), cyl_accel=None, braking: tuple | None = None,
              moving_gain_max: float = 0.0, moving_margin: float = 0.0, moving_margin_time: float = 0.0,
-             brake: tuple[bool, ...] = (True, False, False),
+             rail_speed: float = 0.0, brake: tuple[bool, ...] = (True, False, False),
              braking_gain: float = 0.0, lookahead_accel: float = 0.0,
              closing_split: tuple[float, float] | None = None, neighbour_reference: float = 1.0,
              neighbour_release: float = 0.0) -> Rows:
@@ -442,6 +451,8 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
     hazard: conservative towards what moves); it needs ``cyl_accel``. ``moving_margin`` > 0 (m): those cylinders'
     rows keep that much more clearance than ``margin`` (their barrier binds that much sooner); it needs ``cyl_accel``.
     ``moving_margin_time`` > 0 (s): and that many seconds of the drone's closing speed on each of them more.
+    ``rail_speed`` > 0 (m/s): each moving cylinder moves on a straight line, so its bound acts along its velocity
+    (where it is at least that fast; :func:`_barrier_parts`).
 
     ``braking`` = (cmd [..., n, 3], decel, dt): the command each drone flies now, the command acceleration limit
     (m/s²) and the control period (s); the cylinders' rows are then :func:`cylinder_braking_rows` (relative degree
@@ -515,7 +526,7 @@ def obs_rows(layout, obs, gain, *, drone_radius: float, margin: float, gate_half
                             cyl_braking=None if braking is None or not brake[0] else (*braking, lookahead[0]),
                             nbr_braking=None if braking is None or not brake[1] else (*braking, braking_gain),
                             moving_gain_max=moving_gain_max, moving_margin=moving_margin,
-                            moving_margin_time=moving_margin_time)
+                            moving_margin_time=moving_margin_time, rail_speed=rail_speed)
     points, after = points[:3], points[3:]  # after: the neighbours' braking rows, if any, go last
     if not numpy:  # traced in barrier_rows' order (numpy: all the rows in one concatenation below)
         points = [concat(points)]
@@ -553,6 +564,7 @@ def filter_rows(layout, obs, gain, safety, *, drone_radius: float, gate_half_ope
                     neighbour_share=safety.neighbour_share, lookahead=(safety.lookahead_xy, safety.lookahead_z),
                     cyl_accel=cyl_accel, braking=braking, moving_gain_max=safety.moving_gain_max,
                     moving_margin=safety.moving_margin, moving_margin_time=safety.moving_margin_time,
+                    rail_speed=safety.rail_speed,
                     brake=(safety.braking, safety.neighbour_braking, safety.gate_braking, safety.wall_braking),
                     braking_gain=safety.neighbour_braking_gain,
                     lookahead_accel=safety.lookahead_accel,

@@ -126,6 +126,13 @@ class SafetyFilterConfig:
     # gain at 1.5x (README), so no shipped policy stores it. Not scaled to the drone. It needs hazard_accel. Runs and
     # bundles from before read back 0.
     moving_margin_time: float = 0.0
+    # m/s, 0 = off: the moving cylinders move on straight lines (a rail, a sweep), so each one's acceleration lies
+    # along its velocity and its bound enters a drone's row as bound x |n . v_c/|v_c||, not the whole bound in the
+    # worst direction; where a cylinder is slower than this (it turns, or its observed velocity's direction is
+    # noise) any direction. A drone beside a sweep then need not keep off the acceleration that only pushes the
+    # cylinder along it: the 1.5x cells' drones waited ~1.4 m off a band crossing a gate's exit (README, "Moving on
+    # rails"). Not scaled to the drone. It needs hazard_accel. Runs and bundles from before read back 0.
+    rail_speed: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
     # m/s: > 0 splits each pair of drones by how fast each one closes on the other (its velocity towards the other),
@@ -176,12 +183,13 @@ class SafetyFilterConfig:
         for name in ("fixed_gain", "rho", "max_iter", "tol"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
-        for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "neighbour_braking_gain", "margin",
+        for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "rail_speed", "neighbour_braking_gain",
+                     "margin",
                      "lookahead_xy", "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near",
                      "closing_split", "neighbour_release", "proximity_slack"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
-        for name in ("moving_gain_max", "moving_margin", "moving_margin_time"):
+        for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "rail_speed"):
             if getattr(self, name) > 0 and not self.hazard_accel:  # the bounds are what tell a moving cylinder
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r} with hazard_accel=false: "
                                  "allowed: 0, or hazard_accel=true")
@@ -272,7 +280,7 @@ def from_manifest(safety: Mapping) -> SafetyFilterConfig:
               "neighbour_braking": False, "neighbour_braking_gain": 0.0, "gate_braking": False, "wall_braking": False,
               "reachable_box": True,
               "escape": False, "escape_stuck": 0.25, "escape_near": 0.3, "moving_gain_max": 0.0, "moving_margin": 0.0,
-              "moving_margin_time": 0.0,
+              "moving_margin_time": 0.0, "rail_speed": 0.0,
               "closing_split": 0.0, "closing_share_min": 0.1,
               "neighbour_reference": 1.0, "neighbour_release": 0.0, "proximity_slack": 0.0, "proximity_slack_min": 0.1,
               **safety}
