@@ -381,13 +381,13 @@ def _barrier_parts(pos, vel, cyl_center, cyl_radius, cyl_vel, cyl_present, nbr_p
     cyl_margin = margin
     if moving_margin > 0 and cyl_motion is not None:  # (static, as the gain cap above)
         cyl_margin = margin + (cyl_motion[0] > 0) * xp.asarray(moving_margin, dtype=pos.dtype)
-    if moving_margin_time > 0 and cyl_motion is not None:  # (static, as above)
-        _, n_xy = unit(pos[..., None, :2] - cyl_center)
+    if (moving_margin_time > 0 or rail_speed > 0) and cyl_motion is not None:  # (static, as above)
+        _, n_xy = unit(pos[..., None, :2] - cyl_center)  # each cylinder's normal, for both options below
+    if moving_margin_time > 0 and cyl_motion is not None:
         closing = xp.maximum(-xp.sum(n_xy * (vel[..., None, :2] - cyl_vel), axis=-1), 0.0)
         cyl_margin = cyl_margin + (cyl_motion[0] > 0) * (xp.asarray(moving_margin_time, dtype=pos.dtype) * closing)
     if rail_speed > 0 and cyl_motion is not None:  # (static, as above; after the cap and the margins, which the
         # whole bound marks as moving)
-        _, n_xy = unit(pos[..., None, :2] - cyl_center)
         speed, heading = unit(cyl_vel)
         along = xp.where(speed >= rail_speed, xp.abs(xp.sum(n_xy * heading, axis=-1)), 1.0)
         cyl_motion = (cyl_motion[0] * along, cyl_motion[1])
