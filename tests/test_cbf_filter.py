@@ -242,30 +242,37 @@ def _moving_and_static_cylinders(vel):
     return (R, r, margin, lag, a), args, kw
 
 
+def _jax_agrees_and_config_needs_the_bounds(args, kw, option: str, value: float, numpy_rows, negative: float):
+    """The shared tail of the moving rows' option tests: with ``option`` = ``value`` JAX gives ``numpy_rows``' b
+    (float64), and the config refuses the option without the bounds that tell a moving cylinder, and below 0."""
+    accel, lag = kw["cyl_motion"]
+    with jax.enable_x64(True):
+        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), **{option: value},
+                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
+    np.testing.assert_allclose(np.asarray(got.b), numpy_rows.b, atol=1e-12)
+    with pytest.raises(ValueError, match=rf"{option}={value} with hazard_accel=false: allowed: 0, or hazard_accel"):
+        SafetyFilterConfig(**{option: value, "hazard_accel": False})
+    with pytest.raises(ValueError, match=rf"invalid safety_filter.{option}={negative}: allowed: >= 0"):
+        SafetyFilterConfig(**{option: negative})
+
+
 def test_moving_margin_widens_the_moving_cylinders_rows_alone_hand_derived():
     """The scene above with moving_margin 0.1 m: the moving cylinder's barrier is h − 0.1 and its row b + γ 0.1 (here
     with the cap's 0.8 /s), the static one's and the floor's unchanged; numpy and JAX agree; in the config it needs
     the bounds that tell a moving cylinder, as the cap does."""
     (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders(np.zeros(3))
-    extra, accel = 0.1, kw["cyl_motion"][0]
+    extra = 0.1
     plain = barriers._barrier_parts(*args, **kw)
     wide = barriers._barrier_parts(*args, moving_margin=extra, **kw)
     d = np.sqrt(0.5)
     np.testing.assert_allclose(wide[0].h, [d - (R + r + margin + extra), 0.6 - (R + r + margin)], atol=1e-9)
     np.testing.assert_allclose(wide[0].b, plain[0].b + [0.8 * extra, 0.0], atol=1e-9)
     np.testing.assert_allclose(wide[2].b, plain[2].b, atol=1e-12)  # the floor keeps margin alone
-    with jax.enable_x64(True):
-        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), moving_margin=extra,
-                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
-    np.testing.assert_allclose(np.asarray(got.b), wide[0].b, atol=1e-12)
+    _jax_agrees_and_config_needs_the_bounds(args, kw, "moving_margin", extra, wide[0], -0.1)
     # Without the bounds (cyl_motion None) no cylinder is known to move: nothing changes.
     still = {**kw, "cyl_motion": None, "moving_gain_max": 0.0}
     np.testing.assert_allclose(barriers._barrier_parts(*args, moving_margin=extra, **still)[0].b,
                                barriers._barrier_parts(*args, **still)[0].b, atol=1e-12)
-    with pytest.raises(ValueError, match=r"moving_margin=0.1 with hazard_accel=false: allowed: 0, or hazard_accel"):
-        SafetyFilterConfig(moving_margin=0.1, hazard_accel=False)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.moving_margin=-0.1: allowed: >= 0"):
-        SafetyFilterConfig(moving_margin=-0.1)
     assert SafetyFilterConfig(moving_margin=0.1).fitted(0.5, 0.2).moving_margin == 0.1  # a distance: not scaled
 
 
@@ -276,7 +283,7 @@ def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
     to the moving cylinder (n · (v − v_c) = 1/√2 > 0), nothing changes; numpy and JAX agree; the config needs the
     bounds."""
     (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders([1.0, -1.0, 0.0])
-    T, accel = 0.05, kw["cyl_motion"][0]
+    T = 0.05
     plain = barriers._barrier_parts(*args, **kw)
     timed = barriers._barrier_parts(*args, moving_margin_time=T, **kw)
     extra = T / np.sqrt(2.0)
@@ -287,14 +294,7 @@ def test_moving_margin_time_grows_with_the_closing_speed_hand_derived():
     away = (args[0], np.array([1.0, 1.0, 0.0]), *args[2:])
     np.testing.assert_allclose(barriers._barrier_parts(*away, moving_margin_time=T, **kw)[0].b,
                                barriers._barrier_parts(*away, **kw)[0].b, atol=1e-12)
-    with jax.enable_x64(True):
-        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), moving_margin_time=T,
-                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
-    np.testing.assert_allclose(np.asarray(got.b), timed[0].b, atol=1e-12)
-    with pytest.raises(ValueError, match=r"moving_margin_time=0.05 with hazard_accel=false: allowed: 0, or hazard"):
-        SafetyFilterConfig(moving_margin_time=0.05, hazard_accel=False)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.moving_margin_time=-1: allowed: >= 0"):
-        SafetyFilterConfig(moving_margin_time=-1)
+    _jax_agrees_and_config_needs_the_bounds(args, kw, "moving_margin_time", T, timed[0], -1)
 
 
 def test_rail_speed_takes_the_bound_along_the_cylinders_velocity_hand_derived():
@@ -304,7 +304,6 @@ def test_rail_speed_takes_the_bound_along_the_cylinders_velocity_hand_derived():
     and the floor's are unchanged, and so are the gain cap's (0.8 /s) and h. Slower than rail_speed (1.5 m/s) the
     whole bound stays; numpy and JAX agree; the config needs the bounds."""
     (R, r, margin, lag, a), args, kw = _moving_and_static_cylinders(np.zeros(3))
-    accel = kw["cyl_motion"][0]
     plain = barriers._barrier_parts(*args, **kw)
     rail = barriers._barrier_parts(*args, rail_speed=0.5, **kw)
     np.testing.assert_allclose(rail[0].b, plain[0].b - [lag * (a - a / np.sqrt(2.0)), 0.0], atol=1e-12)
@@ -315,14 +314,7 @@ def test_rail_speed_takes_the_bound_along_the_cylinders_velocity_hand_derived():
     beside = (np.array([0.0, 0.5, 1.0]), *args[1:])
     np.testing.assert_allclose(barriers._barrier_parts(*beside, rail_speed=0.5, **kw)[0].b[0],
                                barriers._barrier_parts(*beside, **kw)[0].b[0] - lag * a, atol=1e-12)
-    with jax.enable_x64(True):
-        got = barriers._barrier_parts(*(jnp.asarray(x) for x in args), rail_speed=0.5,
-                                      **{**kw, "cyl_motion": (jnp.asarray(accel), lag)})[0]
-    np.testing.assert_allclose(np.asarray(got.b), rail[0].b, atol=1e-12)
-    with pytest.raises(ValueError, match=r"rail_speed=0.2 with hazard_accel=false: allowed: 0, or hazard_accel"):
-        SafetyFilterConfig(rail_speed=0.2, hazard_accel=False)
-    with pytest.raises(ValueError, match=r"invalid safety_filter.rail_speed=-1: allowed: >= 0"):
-        SafetyFilterConfig(rail_speed=-1)
+    _jax_agrees_and_config_needs_the_bounds(args, kw, "rail_speed", 0.5, rail[0], -1)
 
 
 def test_neighbour_rows_split_the_pair_condition():
