@@ -1329,19 +1329,23 @@ def test_safety_filter_config_round_trips_through_a_manifest_and_old_configs_map
     assert from_manifest(old).proximity_slack == 0.0 and from_manifest(old).moving_margin == 0.0
     assert from_manifest(old).moving_margin_time == 0.0 and from_manifest(old).rail_speed == 0.0
     # Runs from before the release read it back as 0 (the shipped policies were measured so), but the race, the
-    # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44; new runs 0.5.
+    # dynamic and the race-moving policies, whose stored filters take it since sessions 42, 43 and 44, and the dynamic
+    # policy fine-tuned under it on rails (session 49); new runs 0.5.
     from aswarm.analysis import evaluate
     from aswarm.training import run_config
 
     assert SafetyFilterConfig().neighbour_release == 0.5
     for name in evaluate.shipped():
-        want = 0.5 if name in ("pretrained", "pretrained:dynamic", "pretrained:race-moving") else 0.0
+        rail = name == "pretrained:dynamic-rail"
+        want = 0.5 if rail or name in ("pretrained", "pretrained:dynamic", "pretrained:race-moving") else 0.0
         stored = run_config.read(evaluate.run_folder(name)).safety_filter
         assert stored.neighbour_release == want, name
         # Slack weighed by nearness: the dynamic (session 44) and the race (session 45) policies' stored filters.
-        assert stored.proximity_slack == (1.0 if name in ("pretrained", "pretrained:dynamic") else 0.0), name
+        assert stored.proximity_slack == (1.0 if rail or name in ("pretrained", "pretrained:dynamic") else 0.0), name
         # A margin for what moves (session 46): an option, stored by no shipped policy (it cost the 1.5x cells).
-        assert stored.moving_margin == 0.0 and stored.moving_margin_time == 0.0 and stored.rail_speed == 0.0, name
+        assert stored.moving_margin == 0.0 and stored.moving_margin_time == 0.0, name
+        # Moving on rails (session 48): only the dynamic policy fine-tuned under it stores it (session 49).
+        assert stored.rail_speed == (0.2 if rail else 0.0), name
     with pytest.raises(ValueError, match=r"invalid safety_filter.moving_gain_max=-1.0: allowed: >= 0"):
         SafetyFilterConfig(moving_gain_max=-1.0)
     with pytest.raises(ValueError, match=r"moving_gain_max=1.0 with hazard_accel=false: allowed: 0, or hazard_accel"):

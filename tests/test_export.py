@@ -212,6 +212,18 @@ def test_the_16_drone_policy_ships_trained_on_from_the_4_drone_one():
     assert config16.safety_filter.escape and evaluate.load("pretrained:lab")[0].safety_filter.escape
 
 
+def test_the_rail_policy_ships_fine_tuned_from_the_dynamic_one_under_the_rail():
+    config, policy = evaluate.load("pretrained:dynamic-rail")
+    stored, base = evaluate.load("pretrained:dynamic")
+    assert "pretrained:dynamic-rail" in evaluate.shipped() and config.init_from == "pretrained:dynamic"
+    # The same scenes, drone and filter but the rail (session 49): only what it was fine-tuned under differs.
+    assert config.env == stored.env
+    assert config.safety_filter == dataclasses.replace(stored.safety_filter, rail_speed=0.2)
+    mine, theirs = jax.tree.leaves(policy["params"]["actor"]), jax.tree.leaves(base["params"]["actor"])
+    assert [a.shape for a in mine] == [a.shape for a in theirs]
+    assert not all(np.array_equal(a, b) for a, b in zip(mine, theirs))
+
+
 def test_the_lab_policy_ships_for_the_lab_room_as_it_stands():
     config, _ = evaluate.load("pretrained:lab")
     assert config.scenario == "lab" and "pretrained:lab" in evaluate.shipped()

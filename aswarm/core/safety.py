@@ -131,7 +131,8 @@ class SafetyFilterConfig:
     # worst direction; where a cylinder is slower than this (it turns, or its observed velocity's direction is
     # noise) any direction. A drone beside a sweep then need not keep off the acceleration that only pushes the
     # cylinder along it: the 1.5x cells' drones waited ~1.4 m off a band crossing a gate's exit (README, "Moving on
-    # rails"). Not scaled to the drone. It needs hazard_accel. Runs and bundles from before read back 0.
+    # rails"). On pretrained:dynamic it trades collisions for success at 1.5x; pretrained:dynamic-rail, fine-tuned
+    # under it (0.2), stores it. Not scaled to the drone. It needs hazard_accel. Runs and bundles from before read 0.
     rail_speed: float = 0.0
     # Share of a pair's gap each drone closes (reciprocal split; 1 treats neighbours as moving obstacles).
     neighbour_share: float = 0.5
