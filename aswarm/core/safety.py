@@ -185,9 +185,8 @@ class SafetyFilterConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: > 0")
         for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "rail_speed", "neighbour_braking_gain",
-                     "margin",
-                     "lookahead_xy", "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck", "escape_near",
-                     "closing_split", "neighbour_release", "proximity_slack"):
+                     "margin", "lookahead_xy", "lookahead_z", "lookahead_accel", "lookahead_scale", "escape_stuck",
+                     "escape_near", "closing_split", "neighbour_release", "proximity_slack"):
             if getattr(self, name) < 0:
                 raise ValueError(f"invalid safety_filter.{name}={getattr(self, name)!r}: allowed: >= 0")
         for name in ("moving_gain_max", "moving_margin", "moving_margin_time", "rail_speed"):
