@@ -2,10 +2,10 @@
 
 One :meth:`FlightController.step` per control period (the manifest's rate, 25 Hz for the shipped
 scenarios): check the poses, update the velocity estimates (by default a model of the drone driven by the commands
-sent, carried to the present: :mod:`aswarm.flight.estimator`), track each drone's gates (or goal),
-build the observations as the simulator does, run the actor, the attention-CBF gain and the CBF
-safety filter, and clamp. Arrays take leading batch axes (worlds) so that software-in-the-loop
-flies many episodes through this same code.
+sent, carried to the present: :mod:`aswarm.flight.estimator`), track each drone's gates (or goal, reached on a
+measured pose ``SafetyConfig.goal_margin`` inside its radius), build the observations as the simulator does, run
+the actor, the attention-CBF gain and the CBF safety filter, and clamp. Arrays take leading batch axes (worlds) so
+that software-in-the-loop flies many episodes through this same code.
 
 Safety on bad input (never a NaN, never more than ``max_speed`` per axis):
 - a NaN/Inf or zero-length pose, or none (NaN is how a missing pose is passed): the drone keeps its
@@ -63,14 +63,20 @@ class SafetyConfig:
     # while it descends, so by default the others keep seeing it (SITL turns this off to match
     # the simulator's episodes).
     finished_are_neighbours: bool = True
+    # m inside the goal radius a measured pose must be to finish its drone. The policy learned to touch its goal's
+    # edge, and a finished drone stops: mocap noise on a pose that grazed the radius must not stop a drone the
+    # simulator's true state never brought in (several sigma of the mocap's noise; README, "Goals on measured poses").
+    goal_margin: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("stale_after", "land_after"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"invalid {name}={v!r}: must be a finite number of seconds > 0")
-        if not (np.isfinite(self.geofence_margin) and self.geofence_margin >= 0):
-            raise ValueError(f"invalid geofence_margin={self.geofence_margin!r}: must be a finite number >= 0")
+        for name in ("geofence_margin", "goal_margin"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"invalid {name}={v!r}: must be a finite number of metres >= 0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,7 +157,11 @@ class FlightController:
         self.num_cylinders = int(env["num_cylinders"])
         self.num_gates = int(env["num_gates"])
         self._half_opening = float(env["gate_half_opening"])
-        self._goal_radius = float(env["goal_radius"])
+        goal_radius = float(env["goal_radius"])
+        if bundle.kind != "track" and safety.goal_margin >= goal_radius:
+            raise ValueError(f"invalid goal_margin={safety.goal_margin!r}: allowed: 0 <= goal_margin < the bundle's "
+                             f"goal radius, {goal_radius:g} m (no pose could finish a drone)")
+        self._goal_inside = goal_radius - safety.goal_margin
         self._collision_radius = float(env["collision_radius"])
         # observe's neighbour rows: the safety filter's where it sees more nearest neighbours than the policy
         # (bundle.filter_layout), which then reads their prefix (run_policy).
@@ -292,8 +302,12 @@ class FlightController:
             self._target = self._target + crossed
             reached = self._target >= self.num_gates
         else:
-            d = p_now - self._wp[:, :, 0]
-            reached = moved & ((d * d).sum(-1) < self._goal_radius**2)
+            # A goal is reached on the newest measured pose, not on the present the model predicts from it: a pose in
+            # the goal says the drone was there (to the mocap's noise), while a prediction a few cm off (latency, the
+            # model's error) finished drones that passed beside their goal, stopped them short of it and lost the
+            # episode (README, "Goals on measured poses").
+            d = p - self._wp[:, :, 0]
+            reached = moved & ((d * d).sum(-1) < self._goal_inside**2)
         newly_finished = reached & ~self._finished
         self._finished |= reached
         self._landing |= self._finished | fence | (blind & (age > self.safety.land_after))

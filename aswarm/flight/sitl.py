@@ -18,6 +18,7 @@ import collections
 import dataclasses
 import functools
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -33,7 +34,7 @@ from aswarm.envs.config import with_legacy_drone
 from aswarm.envs.dynamics import drone_state
 from aswarm.envs.randomization import Randomization
 from aswarm.envs.scenarios import cylinders_at
-from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, load_bundle
+from aswarm.flight import Bundle, FlightController, Obstacles, SafetyConfig, StepResult, load_bundle
 from aswarm.flight.estimator import EstimatorConfig
 
 
@@ -141,12 +142,15 @@ def split_latency(latency_ms: float, cfg: envs.EnvConfig) -> tuple[int, int]:
 def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = EVAL_SEED,
              noise: float = 0.0, latency_ms: float = 0.0, mass_scale: float = 1.0, thrust_scale: float = 1.0,
              env_overrides: list[str] | dict | None = None, estimation: EstimatorConfig = EstimatorConfig(),
-             progress: bool = False) -> dict:
+             progress: bool = False, on_step: Callable[[Sensed, StepResult | None], None] | None = None) -> dict:
     """Fly ``episodes`` episodes; returns ``aswarm eval``'s metrics plus the runtime's own statistics.
 
     noise: standard deviation (m) of the Gaussian noise added to every position the runtime sees;
     latency_ms: what the runtime sees is this old, counting its command's way to the motors (:func:`split_latency`);
     mass_scale, thrust_scale: the simulated drone's mass and thrust constant over the nominal ones.
+    on_step: called at every control step with the simulator's true state as it left the step before (host arrays)
+    and the runtime's answer to what it saw of it, and once more after the last step with None for the answer: for
+    traces (``experiments/sitl_trace.py``).
     """
     if episodes <= 0:
         raise ValueError(f"invalid episodes={episodes}: must be > 0")
@@ -196,6 +200,8 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
             rec[name] = np.where(first, v, rec[name])
         ended |= first
         if k == cfg.max_steps or ended.all():
+            if on_step is not None:
+                on_step(host, None)
             break
         seen.append(host)
         old = seen[0]  # `latency` steps ago (the oldest there is at the start)
@@ -208,6 +214,8 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
                                            present=layout.cyl_present, accel=accel))
         runtime += time.perf_counter() - t0
         steps += 1
+        if on_step is not None:
+            on_step(host, out)
         live = ~ended
         interventions += float(np.sum(out.intervened[live]))
         flying += float(np.sum(live)) * n
