@@ -85,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", type=float, default=0.002, metavar="METRES")
     p.add_argument("--latency", type=float, default=40.0, metavar="MS")
     p.add_argument("--env", action="append", default=[], metavar="FIELD=VALUE")
+    p.add_argument("--goal-margin", type=float, default=None, metavar="METRES",
+                   help="the runtime's SafetyConfig.goal_margin (default: its default)")
     args = p.parse_args(argv)
     import jax
 
@@ -97,8 +99,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rec = Recorder()
     env = sitl.make_env(bundle, None, args.env)
+    margin = {} if args.goal_margin is None else {"goal_margin": args.goal_margin}
     result = sitl.run_sitl(bundle, None, args.episodes, args.seed, noise=args.noise, latency_ms=args.latency,
-                           env_overrides=args.env, on_step=rec)
+                           env_overrides=args.env, on_step=rec, **margin)
     # The episodes' goals: run_sitl's simulator (cached: its reset is not compiled again) from the same key.
     plant = sitl.exact_drone(env, latency_ticks=sitl.split_latency(args.latency, env.config)[1])
     state, _ = sitl.simulator(plant.config, args.episodes).reset(jax.random.PRNGKey(args.seed))

@@ -142,12 +142,14 @@ def split_latency(latency_ms: float, cfg: envs.EnvConfig) -> tuple[int, int]:
 def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes: int = 200, seed: int = EVAL_SEED,
              noise: float = 0.0, latency_ms: float = 0.0, mass_scale: float = 1.0, thrust_scale: float = 1.0,
              env_overrides: list[str] | dict | None = None, estimation: EstimatorConfig = EstimatorConfig(),
-             progress: bool = False, on_step: Callable[[Sensed, StepResult | None], None] | None = None) -> dict:
+             goal_margin: float = SafetyConfig.goal_margin, progress: bool = False,
+             on_step: Callable[[Sensed, StepResult | None], None] | None = None) -> dict:
     """Fly ``episodes`` episodes; returns ``aswarm eval``'s metrics plus the runtime's own statistics.
 
     noise: standard deviation (m) of the Gaussian noise added to every position the runtime sees;
     latency_ms: what the runtime sees is this old, counting its command's way to the motors (:func:`split_latency`);
     mass_scale, thrust_scale: the simulated drone's mass and thrust constant over the nominal ones.
+    goal_margin: the runtime's (``SafetyConfig.goal_margin``).
     on_step: called at every control step with the simulator's true state as it left the step before (host arrays)
     and the runtime's answer to what it saw of it, and once more after the last step with None for the answer: for
     traces (``experiments/sitl_trace.py``).
@@ -170,7 +172,7 @@ def run_sitl(bundle: Bundle | str | Path, scenario: str | None = None, episodes:
     # A pose is fresh for the controller if it is at most `latency` steps old: the stale limit
     # grows with the configured latency, or every drone would hover.
     safety = SafetyConfig(stale_after=max(0.1, (latency + 1.5) * cfg.dt), land_after=max(0.5, (latency + 5) * cfg.dt),
-                          finished_are_neighbours=False)
+                          finished_are_neighbours=False, goal_margin=goal_margin)
     ctl = FlightController(b, env.num_agents, safety=safety, estimation=estimation)
     ctl.reset(**course(b, layout))
     # The moving cylinders' acceleration bounds, as a flight script gives them from its obstacles' known motion.
