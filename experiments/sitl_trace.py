@@ -10,7 +10,8 @@ same runtime and sorts every episode the simulator counts as failed without a co
 
 - *finished by the runtime alone*: the runtime had finished every drone (a finished drone stops: it lands) while the
   simulator, on the drones' true positions, holds some unfinished. Printed per such drone: the closest its true path
-  came to its goal at the control steps, and how far from the goal the runtime's position was when it finished it;
+  came to its goal at the control steps, and how far from the goal the runtime's present (its estimate carried to the
+  step's time: ``StepResult.position``) was when it finished it;
 - *time-out*: drones the runtime had not finished either, each with its distance to its goal, the speed the policy
   asked for and the speed the filter let through (held: a deadlock before a hazard).
 
@@ -119,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"{d['asked']:.2f} m/s, let through {d['let']:.2f}{' (held)' if d['held'] else ''}")
                 else:
                     print(f"  episode {f['episode']} drone {d['drone']}: its true path came within "
-                          f"{d['closest_true']:.3f} m of its goal; finished at {d['at_finish']:.3f} m as the runtime "
-                          "saw it")
+                          f"{d['closest_true']:.3f} m of its goal; the runtime's present was {d['at_finish']:.3f} m "
+                          "from it when it finished it")
     return 0
 
 
