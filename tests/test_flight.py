@@ -638,6 +638,7 @@ def _pass_beside_the_goal(monkeypatch, off, margin=None, steps=30):
     filter of a real swarm). Poses are one control step (40 ms) old. Returns per step: the true distance to the goal,
     the predicted present's and whether the runtime finished the drone."""
     toward = np.array([1.5, -1.5, 0.0])
+
     def toward_the_goal(bundle, obs, cyl_accel=None, applied=None):
         u = np.broadcast_to(toward, obs.shape[:-1] + (3,)).copy()
         off = np.zeros(obs.shape[:-1], bool)

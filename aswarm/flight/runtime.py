@@ -303,9 +303,9 @@ class FlightController:
             reached = self._target >= self.num_gates
         else:
             # A goal is reached on the newest measured pose, not on the present the model predicts from it: a pose in
-            # the goal says the drone was there (to the mocap's noise), while a prediction a few cm off (latency, the
-            # model's error) finished drones that passed beside their goal, stopped them short of it and lost the
-            # episode (README, "Goals on measured poses").
+            # the goal says the drone was there (to the mocap's noise), while a prediction millimetres off (latency, the
+            # model's error) finished drones that only grazed their goal, stopped them outside it and lost the episode
+            # (README, "Goals on measured poses").
             d = p - self._wp[:, :, 0]
             reached = moved & ((d * d).sum(-1) < self._goal_inside**2)
         newly_finished = reached & ~self._finished
