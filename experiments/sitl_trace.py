@@ -25,7 +25,11 @@ import sys
 
 import numpy as np
 
-HELD = 0.25  # a drone is held where the filter lets through less than this share of the speed the policy asked for
+from aswarm.core.barriers import ESCAPE_MIN_SPEED
+
+# A drone is held where it asked for more than the deadlock escape's least speed and the filter let through less than
+# this share of it.
+HELD = 0.25
 
 
 class Recorder:
@@ -73,7 +77,7 @@ def classify(rec: Recorder, goals: np.ndarray, goal_radius: float) -> list[dict]
                 asked = float(np.linalg.norm(nominal[-1, w, d, :2]))
                 let = float(np.linalg.norm(sent[-1, w, d, :2]))
                 drones.append({"drone": int(d), "to_goal": float(true_gap[-1, w, d]), "asked": asked, "let": let,
-                               "held": asked > 0.2 and let < HELD * asked})
+                               "held": asked > ESCAPE_MIN_SPEED and let < HELD * asked})
             out.append({"episode": int(w), "kind": "time-out", "drones": drones})
     return out
 
