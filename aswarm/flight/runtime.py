@@ -64,8 +64,8 @@ class SafetyConfig:
     # the simulator's episodes).
     finished_are_neighbours: bool = True
     # m inside the goal radius a measured pose must be to finish its drone. The policy learned to touch its goal's
-    # edge, and a finished drone stops: mocap noise on a pose that grazed the radius must not stop a drone the
-    # simulator's true state never brought in (several sigma of the mocap's noise; README, "Goals on measured poses").
+    # edge, and a finished drone stops: mocap noise on a pose that grazed the radius must not stop a drone that never
+    # truly entered it (several sigma of the mocap's noise; README, "Goals on measured poses").
     goal_margin: float = 0.01
 
     def __post_init__(self) -> None:
